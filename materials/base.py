@@ -1,0 +1,227 @@
+"""The material interface: parameters with their optimization transforms, and the Warp update.
+
+A material is one class with its parameters and its kernels. The simulator calls one Warp
+function per particle and substep, built by :meth:`Material.warp_update`::
+
+    F_new, J_new, tau = update(F_tmp, C, J, dt, params, row)
+
+* ``F_tmp = (I + dt C) F`` (3x3, the trial deformation gradient),
+* ``C`` the APIC affine velocity matrix (1/s), ``J`` the tracked volume ratio (used by fluids),
+* ``params`` a ``wp.array2d(dtype=float)`` of *physical* parameter values, shape (R, P) with
+  R = 1 (one value for the whole body) or R = N (one row per particle); ``row`` picks the row,
+* returns the new (elastic) deformation gradient, the new J, and the Kirchhoff stress tau (Pa).
+
+Parameters are optimized in a transformed ("raw") space: ``log10`` (E, viscosities, yield
+stress), ``tanh`` (Poisson's ratio, bounded to [lo, hi]) or ``linear`` (friction angle in
+degrees). :meth:`Material.to_physical` maps raw torch tensors to physical values differentiably.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal, Mapping, Sequence
+
+import torch
+
+__all__ = ["MaterialParam", "Material", "MaterialError", "lame_parameters"]
+
+Transform = Literal["log10", "tanh", "linear"]
+
+
+class MaterialError(ValueError):
+    """An invalid material parameter value, name or option."""
+
+
+@dataclass(frozen=True)
+class MaterialParam:
+    """One physical parameter of a material.
+
+    Attributes:
+        name: key used in dicts, configs and reports (``E``, ``nu``, ``mu``, ...).
+        default: default starting guess, physical units.
+        transform: how it is optimized: ``log10``, ``tanh`` (bounded) or ``linear``.
+        low, high: valid physical range. For ``log10`` parameters ``low`` is exclusive (the
+            value must be > low, normally 0); otherwise both ends are inclusive. For ``tanh``
+            parameters the range is also the tanh bound.
+        optimize: whether the parameter is optimized by default.
+        lr: Adam learning rate in the raw (transformed) space.
+        units: physical units, for reports.
+        description: one line for docs and ``projo4d materials``.
+    """
+
+    name: str
+    default: float
+    transform: Transform = "log10"
+    low: float = 0.0
+    high: float = math.inf
+    optimize: bool = True
+    lr: float = 0.1
+    units: str = ""
+    description: str = ""
+
+    def check(self, value: float, material: str = "") -> None:
+        """Raise :class:`MaterialError` if ``value`` is outside the valid range."""
+        where = f"{material}." if material else ""
+        if not isinstance(value, (int, float)) or not math.isfinite(float(value)):
+            raise MaterialError(f"{where}{self.name} must be a finite number, got {value!r}")
+        v = float(value)
+        if self.transform == "log10":
+            if not (v > self.low and v <= self.high):
+                raise MaterialError(
+                    f"{where}{self.name} = {v:g} is out of range: expected {self.low:g} < {self.name} <= {self.high:g}"
+                    + (f" {self.units}" if self.units else "")
+                )
+        elif not (self.low <= v <= self.high):
+            raise MaterialError(
+                f"{where}{self.name} = {v:g} is out of range: expected {self.low:g} <= {self.name} <= {self.high:g}"
+                + (f" {self.units}" if self.units else "")
+            )
+
+    def to_raw(self, value: torch.Tensor | float) -> torch.Tensor:
+        """Physical value -> optimized (raw) value."""
+        v = torch.as_tensor(value, dtype=torch.float32)
+        if self.transform == "log10":
+            return torch.log10(v)
+        if self.transform == "tanh":
+            r = self.high - self.low
+            z = (v - self.low - r / 2) / (r / 2)
+            return (r / 2) * torch.atanh(z.clamp(-1 + 1e-6, 1 - 1e-6))
+        return v.clone()
+
+    def to_physical(self, raw: torch.Tensor) -> torch.Tensor:
+        """Optimized (raw) value -> physical value, differentiable."""
+        if self.transform == "log10":
+            return torch.pow(10.0, raw)
+        if self.transform == "tanh":
+            r = self.high - self.low
+            return (r / 2) * torch.tanh(2 * raw / r) + self.low + r / 2
+        return raw
+
+
+def lame_parameters(E: float, nu: float) -> tuple[float, float]:
+    """Lame parameters (mu, lambda) in Pa from Young's modulus E (Pa) and Poisson's ratio nu."""
+    return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+
+
+class Material:
+    """Base class of the constitutive models.
+
+    Subclasses set :attr:`params` and implement :meth:`build_update`, which returns a
+    ``@wp.func`` with the signature described in the module docstring. Options (e.g. the
+    plasticine yield rule) are constructor keyword arguments stored in :attr:`options`; they
+    are compile-time constants of the generated kernel.
+
+    Args:
+        **options: model options (see each subclass).
+    """
+
+    registry_name: ClassVar[str] = ""
+    params: ClassVar[tuple[MaterialParam, ...]] = ()
+    uses_svd: ClassVar[bool] = False
+    #: True for models whose state is the scalar J (fluids) rather than F.
+    tracks_volume_only: ClassVar[bool] = False
+    option_defaults: ClassVar[Mapping[str, Any]] = {}
+
+    def __init__(self, **options: Any):
+        unknown = set(options) - set(self.option_defaults)
+        if unknown:
+            raise MaterialError(
+                f"{type(self).__name__} has no option(s) {sorted(unknown)}; "
+                f"known options: {sorted(self.option_defaults) or 'none'}"
+            )
+        self.options: dict[str, Any] = {**self.option_defaults, **options}
+        self._update = None
+
+    # ----------------------------------------------------------------- parameters
+    @property
+    def name(self) -> str:
+        return self.registry_name or type(self).__name__
+
+    @property
+    def param_names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def param(self, name: str) -> MaterialParam:
+        for p in self.params:
+            if p.name == name:
+                return p
+        raise MaterialError(f"material {self.name!r} has no parameter {name!r}; its parameters are {self.param_names}")
+
+    def defaults(self) -> dict[str, float]:
+        """Default starting guesses, physical units."""
+        return {p.name: p.default for p in self.params}
+
+    def complete(self, values: Mapping[str, float] | None) -> dict[str, float]:
+        """``values`` with missing parameters filled from the defaults; unknown keys raise."""
+        values = dict(values or {})
+        unknown = set(values) - set(self.param_names)
+        if unknown:
+            raise MaterialError(
+                f"material {self.name!r} has no parameter(s) {sorted(unknown)}; its parameters are {self.param_names}"
+            )
+        return {p.name: float(values.get(p.name, p.default)) for p in self.params}
+
+    def validate(self, values: Mapping[str, float]) -> None:
+        """Raise :class:`MaterialError` naming the parameter, value and valid range."""
+        for p in self.params:
+            if p.name in values:
+                p.check(values[p.name], self.name)
+
+    def pack(self, values: Mapping[str, float] | None = None, device: str | torch.device = "cpu") -> torch.Tensor:
+        """Physical values -> (P,) float32 tensor in :attr:`params` order (validated)."""
+        full = self.complete(values)
+        self.validate(full)
+        return torch.tensor([full[n] for n in self.param_names], dtype=torch.float32, device=device)
+
+    def unpack(self, packed: torch.Tensor) -> dict[str, float]:
+        """(P,) tensor of physical values -> dict of floats."""
+        flat = packed.detach().reshape(-1, len(self.params))[0].cpu().tolist()
+        return dict(zip(self.param_names, flat))
+
+    def to_raw(self, values: Mapping[str, float] | None = None) -> torch.Tensor:
+        """Physical values -> (P,) raw (optimized-space) tensor."""
+        full = self.complete(values)
+        self.validate(full)
+        return torch.stack([p.to_raw(full[p.name]) for p in self.params])
+
+    def to_physical(self, raw: torch.Tensor) -> torch.Tensor:
+        """(..., P) raw tensor -> (..., P) physical tensor, differentiable."""
+        if raw.shape[-1] != len(self.params):
+            raise MaterialError(f"material {self.name!r} expects {len(self.params)} raw parameters, got shape {tuple(raw.shape)}")
+        return torch.stack([p.to_physical(raw[..., i]) for i, p in enumerate(self.params)], dim=-1)
+
+    def check_tensor(self, physical: torch.Tensor) -> None:
+        """Validate a (P,) or (N, P) tensor of physical values (reports the first bad entry)."""
+        if physical.ndim not in (1, 2) or physical.shape[-1] != len(self.params):
+            raise MaterialError(
+                f"material {self.name!r} expects parameters of shape (P,) or (N, P) with P = {len(self.params)} "
+                f"({', '.join(self.param_names)}), got {tuple(physical.shape)}"
+            )
+        rows = physical.detach().reshape(-1, len(self.params)).cpu()
+        if not torch.isfinite(rows).all():
+            bad = (~torch.isfinite(rows)).nonzero()[0].tolist()
+            raise MaterialError(f"material {self.name!r}: parameter {self.param_names[bad[1]]} is NaN or inf (row {bad[0]})")
+        for i, p in enumerate(self.params):
+            # ranges are intervals: the extremes being valid means every row is
+            p.check(float(rows[:, i].min()), self.name)
+            p.check(float(rows[:, i].max()), self.name)
+
+    # ----------------------------------------------------------------- kernels
+    def build_update(self):  # pragma: no cover - abstract
+        """Return the ``@wp.func`` update (see module docstring)."""
+        raise NotImplementedError
+
+    def warp_update(self):
+        """The cached Warp update function for this material and its options."""
+        if self._update is None:
+            self._update = self.build_update()
+        return self._update
+
+    def cache_key(self) -> tuple:
+        """Identifies the generated kernels: class and options."""
+        return (type(self).__qualname__, tuple(sorted((k, repr(v)) for k, v in self.options.items())))
+
+    def __repr__(self) -> str:
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+        return f"{type(self).__name__}({opts})"

@@ -1,0 +1,8 @@
+"""projo4d's core: the differentiable Warp MPM, scene representation, data, losses and metrics,
+Lightning modules, command line, discovery and visualization.
+
+Importing ``toolkit`` is light: Warp, open3d and Lightning are imported by the submodules that
+need them.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,93 @@
+"""The torch bridge of the simulator: a ``torch.autograd.Function`` with chunked checkpointing."""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from toolkit.mpm.kernels import NO_FLAG
+
+__all__ = ["SimulateFunction"]
+
+
+def _grad_param(t: torch.Tensor, dtype) -> "wp.array":
+    """A Warp copy of ``t`` with a zeroed gradient buffer (gradients accumulate over chunks)."""
+    arr = wp.clone(wp.from_torch(t.detach().contiguous(), dtype=dtype))
+    arr.requires_grad = True
+    return arr
+
+
+class SimulateFunction(torch.autograd.Function):
+    """positions, velocities = SimulateFunction.apply(sim, n_frames, holder, x0, v0, params, gravity, effect_params)
+
+    ``x0`` (N, 3), ``v0`` (N, 3), ``params`` (R, P), ``gravity`` (3,), ``effect_params`` (E,), all
+    float32 contiguous on the simulator's device (see ``MPMSimulator._prepare``). Outputs are
+    (T+1, N, 3). ``holder`` receives the substeps used (after any dt halving).
+    """
+
+    @staticmethod
+    def forward(ctx, sim, n_frames, holder, x0, v0, params, gravity, effect_params):
+        with sim.stream():
+            out = sim.forward_with_retries(x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints=True)
+        holder["substeps"] = out["substeps"]
+        ctx.sim = sim
+        ctx.n_frames = n_frames
+        ctx.substeps = out["substeps"]
+        ctx.checkpoints = out["checkpoints"]
+        ctx.save_for_backward(params, gravity, effect_params)
+        return out["positions"], out["velocities"]
+
+    @staticmethod
+    def backward(ctx, g_pos, g_vel):
+        sim = ctx.sim
+        params, gravity, effect_params = ctx.saved_tensors
+        substeps = ctx.substeps
+        n = ctx.checkpoints[0].x.shape[0] if ctx.checkpoints else None
+        if n is None:  # zero frames: the outputs are the inputs
+            zeros = torch.zeros_like
+            gp = g_pos if g_pos is not None else None
+            gv = g_vel if g_vel is not None else None
+            return (None, None, None, None if gp is None else gp[0], None if gv is None else gv[0],
+                    zeros(params), zeros(gravity), zeros(effect_params))
+        dev = params.device
+        g_pos = torch.zeros((ctx.n_frames + 1, n, 3), device=dev) if g_pos is None else g_pos.contiguous()
+        g_vel = torch.zeros((ctx.n_frames + 1, n, 3), device=dev) if g_vel is None else g_vel.contiguous()
+        chunks = sim.chunks(ctx.n_frames, substeps)
+        dt = sim.config.frame_dt / substeps
+        per_particle = int(params.shape[0] == n and n > 1)
+
+        with sim.stream():
+            wp_params = _grad_param(params, wp.float32)
+            wp_gravity = _grad_param(gravity.reshape(1, 3), wp.vec3)
+            wp_effects = _grad_param(effect_params, wp.float32)
+            states, grids = sim._pool(n, max(length for _, _, length in chunks))
+            carry = [wp.zeros_like(a) for a in states[0].arrays()]
+            carry_x, carry_v = wp.to_torch(carry[0]), wp.to_torch(carry[1])
+            status = wp.full(4, NO_FLAG, dtype=wp.int32, device=sim.device)
+
+            for c in range(len(chunks) - 1, -1, -1):
+                frame, first, length = chunks[c]
+                if first + length == (frame + 1) * substeps:
+                    carry_x += g_pos[frame + 1]
+                    carry_v += g_vel[frame + 1]
+                states[0].assign(ctx.checkpoints[c])
+                for s in states[: length + 1]:
+                    s.zero_grad()
+                for g in grids[:length]:
+                    g.zero_grad()
+                tape = wp.Tape()
+                with tape:
+                    for k in range(length):
+                        sim._substep(states[k], states[k + 1], grids[k], wp_params, per_particle, wp_gravity, wp_effects,
+                                     dt, first + k, status)
+                end = states[length].arrays()
+                tape.backward(grads={a: g for a, g in zip(end, carry)})
+                for dst, src in zip(carry, states[0].arrays()):
+                    wp.copy(dst, src.grad)
+
+            g_x0 = carry_x + g_pos[0]
+            g_v0 = carry_v + g_vel[0]
+            g_params = wp.to_torch(wp_params.grad).clone()
+            g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
+            g_effects = wp.to_torch(wp_effects.grad).clone()
+        return None, None, None, g_x0.clone(), g_v0.clone(), g_params, g_gravity, g_effects

@@ -1,0 +1,138 @@
+"""Simulation settings and the errors the simulator reports."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Literal, Optional, Sequence
+
+__all__ = [
+    "SimConfig",
+    "SimulationError",
+    "OutOfDomainError",
+    "CFLError",
+    "NaNError",
+    "BOUNDARY_MODES",
+]
+
+BOUNDARY_MODES = ("sticky", "slip", "separate")
+
+
+class SimulationError(RuntimeError):
+    """A rollout could not continue. ``frame`` and ``substep`` (global, 0-based) say where."""
+
+    def __init__(self, message: str, frame: int | None = None, substep: int | None = None):
+        super().__init__(message)
+        self.frame = frame
+        self.substep = substep
+
+
+class OutOfDomainError(SimulationError):
+    """A particle left the bounded grid."""
+
+
+class CFLError(SimulationError):
+    """A particle moved more than ``cfl * dx`` in one substep."""
+
+
+class NaNError(SimulationError):
+    """A particle position or velocity became NaN or infinite."""
+
+
+@dataclass
+class SimConfig:
+    """Settings of the MLS-MPM simulator (DESIGN section 4).
+
+    Attributes:
+        dx: grid spacing, metres.
+        substeps: substeps per frame; ``dt = frame_dt / substeps``.
+        frame_dt: time between output frames, seconds (1/24 for 24 fps).
+        density: kg/m^3, fixed (under gravity only E/rho is identifiable).
+        particle_volume: m^3 per particle; ``None`` means ``(dx/2)^3``.
+        gravity: default gravity, m/s^2 (the simulator's inputs may override it).
+        ground_height: y of the ground plane (normal +y), metres; ``None`` disables it.
+        boundary: ground contact mode: ``sticky`` (v = 0), ``slip`` (normal velocity removed) or
+            ``separate`` (approaching normal velocity removed).
+        domain: ``(lower, upper)`` corners of the grid in metres, or ``None`` to size it from the
+            particles' initial positions, the ballistic trajectory and ``margin``. Corners are
+            snapped to multiples of dx, so results do not depend on the domain size.
+        margin: metres added around the auto-sized domain.
+        out_of_domain: ``error`` raises :class:`OutOfDomainError` when a particle leaves the grid;
+            ``clamp`` keeps particles inside (domain faces act as separating walls).
+        cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
+        check_every_frame: check CFL/NaN/out-of-domain flags after every frame (one host sync per
+            frame). When off, they are checked once at the end of the rollout.
+        auto_dt_halving: on a CFL or NaN failure, double the substeps and rerun (up to
+            ``max_dt_halvings`` times) instead of raising.
+        max_dt_halvings: see above.
+        checkpoint_every: substeps per checkpoint chunk for gradients (state kept at chunk starts,
+            the chunk recomputed on the backward pass). Chunks never straddle frames.
+        deterministic: Warp's deterministic mode for float atomics on CUDA (reproducible, slower).
+    """
+
+    dx: float = 0.02
+    substeps: int = 100
+    frame_dt: float = 1.0 / 24.0
+    density: float = 1000.0
+    particle_volume: Optional[float] = None
+    gravity: Sequence[float] = (0.0, -9.8, 0.0)
+    ground_height: Optional[float] = 0.0
+    boundary: Literal["sticky", "slip", "separate"] = "sticky"
+    domain: Optional[tuple[Sequence[float], Sequence[float]]] = None
+    margin: float = 0.2
+    out_of_domain: Literal["error", "clamp"] = "error"
+    cfl: float = 0.4
+    check_every_frame: bool = True
+    auto_dt_halving: bool = False
+    max_dt_halvings: int = 3
+    checkpoint_every: int = 25
+    deterministic: bool = False
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field, value and what is expected."""
+
+        def need(cond: bool, msg: str) -> None:
+            if not cond:
+                raise ValueError(f"SimConfig: {msg}")
+
+        need(self.dx > 0 and math.isfinite(self.dx), f"dx must be a positive length in metres, got {self.dx!r}")
+        need(isinstance(self.substeps, int) and self.substeps >= 1, f"substeps must be an integer >= 1, got {self.substeps!r}")
+        need(self.frame_dt > 0, f"frame_dt must be > 0 seconds, got {self.frame_dt!r}")
+        need(self.density > 0, f"density must be > 0 kg/m^3, got {self.density!r}")
+        need(self.particle_volume is None or self.particle_volume > 0, f"particle_volume must be > 0 m^3, got {self.particle_volume!r}")
+        need(len(tuple(self.gravity)) == 3, f"gravity must have 3 components, got {self.gravity!r}")
+        need(self.boundary in BOUNDARY_MODES, f"boundary must be one of {BOUNDARY_MODES}, got {self.boundary!r}")
+        need(self.out_of_domain in ("error", "clamp"), f"out_of_domain must be 'error' or 'clamp', got {self.out_of_domain!r}")
+        need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl!r}")
+        need(self.margin >= 0, f"margin must be >= 0 metres, got {self.margin!r}")
+        need(isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1, f"checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")
+        need(self.max_dt_halvings >= 0, f"max_dt_halvings must be >= 0, got {self.max_dt_halvings!r}")
+        if self.domain is not None:
+            lo, hi = self.domain
+            need(len(lo) == 3 and len(hi) == 3, f"domain must be ((x0, y0, z0), (x1, y1, z1)), got {self.domain!r}")
+            need(all(h - l >= 4 * self.dx for l, h in zip(lo, hi)), f"domain must be at least 4 dx wide on every axis, got {self.domain!r}")
+
+    @property
+    def dt(self) -> float:
+        """Substep length, seconds."""
+        return self.frame_dt / self.substeps
+
+    @property
+    def volume(self) -> float:
+        """Volume per particle, m^3."""
+        return self.particle_volume if self.particle_volume is not None else (0.5 * self.dx) ** 3
+
+    @property
+    def mass(self) -> float:
+        """Mass per particle, kg."""
+        return self.density * self.volume
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["gravity"] = list(self.gravity)
+        if self.domain is not None:
+            d["domain"] = [list(self.domain[0]), list(self.domain[1])]
+        return d

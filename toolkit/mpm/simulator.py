@@ -1,0 +1,581 @@
+"""The MLS-MPM simulator: bounded grid, substep loop, checks, and chunked checkpointing.
+
+:class:`MPMSimulator` runs on ``cpu`` or ``cuda`` with the same code. Two entry points:
+
+* :meth:`MPMSimulator.simulate` takes torch tensors and returns per-frame positions and
+  velocities; it is differentiable (``torch.autograd``) with respect to the initial positions,
+  the initial velocity, the material parameters, gravity and the effect parameters.
+* :meth:`MPMSimulator.rollout` is the same forward pass without gradients, and can also return
+  the deformation gradients (for energy diagnostics).
+
+Gradients through time use chunked checkpointing: the forward pass keeps the particle state at
+the start of every chunk of ``SimConfig.checkpoint_every`` substeps (chunks never straddle a
+frame); the backward pass walks the chunks in reverse, restores the chunk's start state,
+recomputes the chunk on a ``wp.Tape`` (each substep with its own particle and grid buffers, as
+Warp's adjoints read the arrays' current contents) and runs its adjoint. Memory is
+``O(chunk x (particles + grid))`` for the buffers plus ``O(n_chunks x particles)`` for the
+checkpoints.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+from dataclasses import dataclass, replace
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from materials import Material, get_material
+from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig, SimulationError
+from toolkit.mpm.effects import Effect, EffectContext, get_effect
+from toolkit.mpm.kernels import (
+    NO_FLAG,
+    compose_effects,
+    g2p,
+    init_state,
+    make_grid_update_kernel,
+    make_p2g_kernel,
+    store_frame,
+)
+
+__all__ = ["MPMSimulator", "GridSpec", "SimulationResult", "RolloutResult"]
+
+log = logging.getLogger(__name__)
+
+_KERNEL_CACHE: dict[tuple, object] = {}
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A bounded grid: node (i, j, k) at ``origin + (i, j, k) * dx``, ``dims`` nodes per axis."""
+
+    origin: tuple[float, float, float]
+    dims: tuple[int, int, int]
+    dx: float
+
+    @property
+    def upper(self) -> tuple[float, float, float]:
+        return tuple(o + (n - 1) * self.dx for o, n in zip(self.origin, self.dims))
+
+    @property
+    def n_nodes(self) -> int:
+        return int(np.prod(self.dims))
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether each point's whole stencil lies inside the grid."""
+        X = (np.asarray(points, np.float64) - np.asarray(self.origin)) / self.dx
+        return np.all((X >= 0.5) & (X < np.asarray(self.dims) - 1.5), axis=1)
+
+    def covers(self, other: "GridSpec") -> bool:
+        return all(
+            so <= oo + 1e-9 and so + (sn - 1) * self.dx >= oo + (on - 1) * self.dx - 1e-9
+            for so, sn, oo, on in zip(self.origin, self.dims, other.origin, other.dims)
+        )
+
+
+@dataclass
+class SimulationResult:
+    """Differentiable simulation output.
+
+    Attributes:
+        positions: (T+1, N, 3) float32, world frame, metres; index t is time ``t * frame_dt``
+            (index 0 is the initial state).
+        velocities: (T+1, N, 3) float32, m/s.
+        substeps: substeps per frame actually used (larger than configured after dt halving).
+    """
+
+    positions: torch.Tensor
+    velocities: torch.Tensor
+    substeps: int
+
+
+@dataclass
+class RolloutResult:
+    """Forward-only output (numpy or torch, no gradients): like :class:`SimulationResult`, plus
+    ``F`` (T+1, N, 3, 3) deformation gradients and ``J`` (T+1, N) volume ratios when asked for."""
+
+    positions: torch.Tensor
+    velocities: torch.Tensor
+    substeps: int
+    F: Optional[torch.Tensor] = None
+    J: Optional[torch.Tensor] = None
+
+
+class _ParticleState:
+    """Per-particle arrays of one substep: x, v (vec3), C, F (mat33), J (float)."""
+
+    def __init__(self, n: int, device: str, requires_grad: bool = False):
+        self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.v = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.C = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
+        self.F = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
+        self.J = wp.zeros(n, dtype=float, device=device, requires_grad=requires_grad)
+
+    def arrays(self) -> tuple:
+        return (self.x, self.v, self.C, self.F, self.J)
+
+    def assign(self, other: "_ParticleState") -> None:
+        for dst, src in zip(self.arrays(), other.arrays()):
+            wp.copy(dst, src)
+
+    def zero_grad(self) -> None:
+        for a in self.arrays():
+            if a.grad is not None:
+                a.grad.zero_()
+
+
+class _Grid:
+    def __init__(self, dims: tuple[int, int, int], device: str, requires_grad: bool = False):
+        self.m = wp.zeros(dims, dtype=float, device=device, requires_grad=requires_grad)
+        self.mv = wp.zeros(dims, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.v = wp.zeros(dims, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+
+    def clear(self) -> None:
+        self.m.zero_()
+        self.mv.zero_()
+
+    def zero_grad(self) -> None:
+        for a in (self.m, self.mv, self.v):
+            if a.grad is not None:
+                a.grad.zero_()
+
+
+class MPMSimulator:
+    """Differentiable MLS-MPM with a registered material and optional physical effects.
+
+    Args:
+        material: a registered material name (``"neo_hookean"``, ...) or a :class:`Material`.
+        config: simulation settings; defaults to :class:`SimConfig()`.
+        effects: effects applied in the grid update, in order (names or instances).
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+
+    Example:
+        >>> sim = MPMSimulator("neo_hookean", SimConfig(substeps=50), device="cpu")
+        >>> out = sim.simulate(x0, v0=torch.tensor([1.0, 0.0, 0.0]), params=sim.material.pack({"E": 1e5}), n_frames=10)
+        >>> out.positions.shape  # (11, N, 3)
+    """
+
+    def __init__(
+        self,
+        material: str | Material = "neo_hookean",
+        config: SimConfig | None = None,
+        effects: Sequence[str | Effect] = (),
+        device: str = "cpu",
+    ):
+        self.material = get_material(material)
+        self.config = config if config is not None else SimConfig()
+        self.config.validate()
+        self.effects: list[Effect] = [get_effect(e) for e in effects]
+        self.device = str(wp.get_device(device))
+        if self.config.deterministic:
+            wp.config.deterministic = wp.DeterministicMode.RUN_TO_RUN
+        self._grid: Optional[GridSpec] = None
+        self._buffers: dict = {}
+        offsets = np.cumsum([0] + [len(e.params) for e in self.effects]).tolist()
+        self._effect_offsets = offsets[:-1]
+        self.n_effect_params = offsets[-1]
+        ground = self.config.ground_height
+        if ground is not None and any(e.registry_name == "ground_friction" for e in self.effects) and self.config.boundary == "sticky":
+            log.warning("ground_friction has no effect with the 'sticky' boundary (infinite friction); use 'slip' or 'separate'")
+
+    # ------------------------------------------------------------------ parameters
+    @property
+    def effect_param_names(self) -> list[str]:
+        """Flat names ``<effect>.<param>`` in the order of the effect parameter vector."""
+        return [f"{e.name}.{p.name}" for e in self.effects for p in e.params]
+
+    def pack_effects(self, values: dict[str, dict[str, float]] | None = None) -> torch.Tensor:
+        """Effect parameters as a flat (E,) float32 tensor, from ``{effect: {param: value}}``."""
+        values = dict(values or {})
+        unknown = set(values) - {e.name for e in self.effects}
+        if unknown:
+            raise ValueError(f"no effect(s) {sorted(unknown)} in this simulator; its effects are {[e.name for e in self.effects]}")
+        flat: list[float] = []
+        for e in self.effects:
+            given = values.get(e.name, {})
+            e.validate(given)
+            flat.extend(float(given.get(p.name, p.default)) for p in e.params)
+        return torch.tensor(flat, dtype=torch.float32, device=self._torch_device)
+
+    def unpack_effects(self, flat: torch.Tensor) -> dict[str, dict[str, float]]:
+        vals = flat.detach().cpu().reshape(-1).tolist()
+        out: dict[str, dict[str, float]] = {}
+        for e, off in zip(self.effects, self._effect_offsets):
+            out[e.name] = {p.name: vals[off + i] for i, p in enumerate(e.params)}
+        return out
+
+    def stream(self):
+        """Context in which Warp launches go to torch's current CUDA stream (no-op on CPU)."""
+        if self.device.startswith("cuda"):
+            return wp.ScopedStream(wp.stream_from_torch(self._torch_device))
+        return contextlib.nullcontext()
+
+    @property
+    def _torch_device(self) -> torch.device:
+        return torch.device("cpu") if self.device == "cpu" else torch.device(self.device)
+
+    def stable_substeps(self, params: dict[str, float] | torch.Tensor, courant: float = 0.5) -> int:
+        """Substeps per frame that keep an elastic wave within ``courant * dx`` per substep.
+
+        Uses the P-wave speed ``sqrt((lambda + 2 mu) / rho)`` for materials with E and nu
+        (or ``sqrt((kappa + 4 mu / 3) / rho)`` for fluids). A guide, not a guarantee.
+        """
+        if isinstance(params, torch.Tensor):
+            params = self.material.unpack(params)
+        params = self.material.complete(params)
+        if "E" in params and "nu" in params:
+            E, nu = params["E"], params["nu"]
+            modulus = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+        else:
+            modulus = params.get("kappa", 0.0) + 4.0 / 3.0 * params.get("mu", 0.0)
+        c = math.sqrt(max(modulus, 0.0) / self.config.density)
+        return max(1, math.ceil(c * self.config.frame_dt / (courant * self.config.dx)))
+
+    # ------------------------------------------------------------------ grid
+    def grid_for(self, x0: np.ndarray, v0: np.ndarray | None = None, n_frames: int = 0, gravity=None) -> GridSpec:
+        """The grid used for a rollout from ``x0``.
+
+        With ``SimConfig.domain`` set, that box. Otherwise the particles' bounding box, swept
+        along the ballistic path ``v0 t + g t^2 / 2`` over the rollout (1.25x the speed, floored
+        at the ground), plus ``margin``. Corners are snapped to multiples of dx, and a grid once
+        made only grows, so a changing v0 during a fit does not change the discretization.
+        """
+        cfg = self.config
+        dx = cfg.dx
+        if cfg.domain is not None:
+            lo = np.asarray(cfg.domain[0], np.float64)
+            hi = np.asarray(cfg.domain[1], np.float64)
+        else:
+            x0 = np.asarray(x0, np.float64)
+            lo, hi = x0.min(0), x0.max(0)
+            if n_frames > 0:
+                T = n_frames * cfg.frame_dt
+                v = np.zeros(3) if v0 is None else np.asarray(v0, np.float64).reshape(-1, 3).mean(0)
+                g = np.asarray(cfg.gravity if gravity is None else gravity, np.float64)
+                ts = np.linspace(0.0, T, 33)
+                path = 1.25 * v[None] * ts[:, None] + 0.5 * g[None] * ts[:, None] ** 2
+                lo = lo + np.minimum(path.min(0), 0.0)
+                hi = hi + np.maximum(path.max(0), 0.0)
+            lo = lo - cfg.margin
+            hi = hi + cfg.margin
+            if cfg.ground_height is not None:
+                lo[1] = max(lo[1], cfg.ground_height - 4 * dx)
+                lo[1] = min(lo[1], x0[:, 1].min() - 4 * dx)
+                hi[1] = max(hi[1], cfg.ground_height + 8 * dx)
+        origin = np.floor(lo / dx) * dx
+        dims = np.ceil((hi - origin) / dx).astype(int) + 1
+        dims = np.maximum(dims, 4)
+        spec = GridSpec(tuple(float(o) for o in origin), tuple(int(d) for d in dims), float(dx))
+        if cfg.domain is None and self._grid is not None and self._grid.covers(spec):
+            return self._grid
+        if cfg.domain is None and self._grid is not None:
+            # grow to the union, keeping the lattice
+            lo_u = np.minimum(np.asarray(self._grid.origin), origin)
+            hi_u = np.maximum(np.asarray(self._grid.upper), np.asarray(spec.upper))
+            origin = np.round(lo_u / dx) * dx
+            dims = np.round((hi_u - origin) / dx).astype(int) + 1
+            spec = GridSpec(tuple(float(o) for o in origin), tuple(int(d) for d in dims), float(dx))
+        return spec
+
+    def set_grid(self, spec: GridSpec) -> None:
+        """Fix the grid (e.g. restored from a checkpoint)."""
+        if abs(spec.dx - self.config.dx) > 1e-12:
+            raise ValueError(f"grid dx {spec.dx} differs from SimConfig.dx {self.config.dx}")
+        if spec != self._grid:
+            self._grid = spec
+            self._buffers = {}
+
+    @property
+    def grid(self) -> Optional[GridSpec]:
+        return self._grid
+
+    # ------------------------------------------------------------------ kernels
+    def _kernels(self):
+        cfg = self.config
+        key = (
+            self.material.cache_key(),
+            tuple(e.cache_key() for e in self.effects),
+            cfg.ground_height,
+            cfg.boundary,
+            cfg.out_of_domain,
+        )
+        if key not in _KERNEL_CACHE:
+            ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx)
+            funcs = [e.build(off, ctx) for e, off in zip(self.effects, self._effect_offsets)]
+            _KERNEL_CACHE[key] = (
+                make_p2g_kernel(self.material.warp_update()),
+                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height, cfg.boundary, cfg.out_of_domain == "clamp"),
+            )
+        return _KERNEL_CACHE[key]
+
+    # ------------------------------------------------------------------ buffers
+    def _pool(self, n: int, chunk: int):
+        """Per-substep states and grids for one taped chunk (allocated once, reused)."""
+        key = ("pool", n, chunk)
+        if key not in self._buffers:
+            self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "pool"}
+            states = [_ParticleState(n, self.device, requires_grad=True) for _ in range(chunk + 1)]
+            grids = [_Grid(self._grid.dims, self.device, requires_grad=True) for _ in range(chunk)]
+            self._buffers[key] = (states, grids)
+        return self._buffers[key]
+
+    def _pingpong(self, n: int):
+        key = ("pingpong", n)
+        if key not in self._buffers:
+            self._buffers[key] = (
+                _ParticleState(n, self.device),
+                _ParticleState(n, self.device),
+                _Grid(self._grid.dims, self.device),
+            )
+        return self._buffers[key]
+
+    # ------------------------------------------------------------------ substeps
+    def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
+                 gravity, effect_params, dt: float, step: int, status) -> None:
+        p2g, grid_update = self._kernels()
+        cfg = self.config
+        spec = self._grid
+        origin = wp.vec3(*spec.origin)
+        n = s_in.x.shape[0]
+        grid.clear()
+        wp.launch(
+            p2g,
+            dim=n,
+            inputs=[s_in.x, s_in.v, s_in.C, s_in.F, s_in.J, params, per_particle, s_out.F, s_out.J, grid.m, grid.mv,
+                    origin, spec.dx, dt, cfg.volume, cfg.mass, status, step],
+            device=self.device,
+        )
+        wp.launch(
+            grid_update,
+            dim=spec.dims,
+            inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt],
+            device=self.device,
+        )
+        wp.launch(
+            g2p,
+            dim=n,
+            inputs=[s_in.x, grid.v, s_out.x, s_out.v, s_out.C, origin, spec.dx, dt, cfg.cfl * spec.dx / dt,
+                    int(cfg.out_of_domain == "clamp"), status, step],
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------------ checks
+    def _check_status(self, status, frame: int, substeps: int, state: _ParticleState) -> None:
+        flags = status.numpy()
+        if flags[2] != NO_FLAG:
+            s = int(flags[2])
+            raise NaNError(
+                f"NaN or inf in particle positions/velocities at frame {s // substeps} (substep {s % substeps} of "
+                f"{substeps}, global substep {s}); the material parameters may be too stiff for dt = "
+                f"{self.config.frame_dt / substeps:.3g} s: increase SimConfig.substeps or enable auto_dt_halving",
+                frame=s // substeps, substep=s,
+            )
+        if flags[0] != NO_FLAG and self.config.out_of_domain == "error":
+            s = int(flags[0])
+            x = state.x.numpy()
+            outside = ~self._grid.contains(x)
+            idx = np.nonzero(outside)[0]
+            lo, hi = self._grid.origin, self._grid.upper
+            detail = f"{len(idx)} particle(s), e.g. particle {idx[0]} at {np.round(x[idx[0]], 4).tolist()}" if len(idx) else "particles"
+            raise OutOfDomainError(
+                f"{detail} left the simulation domain [{np.round(lo, 3).tolist()}, {np.round(hi, 3).tolist()}] "
+                f"at frame {s // substeps} (global substep {s}); enlarge SimConfig.domain or SimConfig.margin, "
+                "or set out_of_domain='clamp'",
+                frame=s // substeps, substep=s,
+            )
+        if flags[1] != NO_FLAG:
+            s = int(flags[1])
+            v = np.linalg.norm(state.v.numpy(), axis=1)
+            raise CFLError(
+                f"CFL violation at frame {s // substeps} (substep {s % substeps} of {substeps}, global substep {s}): a "
+                f"particle moved more than {self.config.cfl} dx in one substep (max speed now {v.max():.3g} m/s, limit "
+                f"{self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); increase "
+                "SimConfig.substeps or enable auto_dt_halving",
+                frame=s // substeps, substep=s,
+            )
+
+    # ------------------------------------------------------------------ inputs
+    def _prepare(self, x0, v0, params, gravity, effect_params, n_frames):
+        dev = self._torch_device
+        if not isinstance(x0, torch.Tensor):
+            x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
+        if x0.ndim != 2 or x0.shape[1] != 3 or x0.shape[0] == 0:
+            raise ValueError(f"x0 must have shape (N, 3) with N >= 1, got {tuple(x0.shape)}")
+        n = x0.shape[0]
+        v0 = torch.zeros(3) if v0 is None else torch.as_tensor(v0, dtype=torch.float32)
+        if v0.shape == (3,):
+            v0 = v0.to(dev).expand(n, 3)
+        elif tuple(v0.shape) != (n, 3):
+            raise ValueError(f"v0 must have shape (3,) or (N, 3) = ({n}, 3), got {tuple(v0.shape)}")
+        if params is None:
+            params = self.material.pack(None)
+        params = torch.as_tensor(params, dtype=torch.float32)
+        if params.ndim == 1:
+            params = params[None]
+        if params.ndim != 2 or params.shape[1] != len(self.material.params) or params.shape[0] not in (1, n):
+            raise ValueError(
+                f"params for {self.material.name!r} must have shape (P,), (1, P) or (N, P) with P = "
+                f"{len(self.material.params)} ({', '.join(self.material.param_names)}) and N = {n}, got {tuple(params.shape)}"
+            )
+        self.material.check_tensor(params)
+        gravity = torch.as_tensor(self.config.gravity if gravity is None else gravity, dtype=torch.float32)
+        if gravity.shape != (3,):
+            raise ValueError(f"gravity must have shape (3,), got {tuple(gravity.shape)}")
+        if effect_params is None:
+            effect_params = self.pack_effects()
+        effect_params = torch.as_tensor(effect_params, dtype=torch.float32).reshape(-1)
+        if effect_params.shape[0] != self.n_effect_params:
+            raise ValueError(
+                f"effect_params must have {self.n_effect_params} values ({', '.join(self.effect_param_names) or 'no effects'}), "
+                f"got {effect_params.shape[0]}"
+            )
+        for name, t in (("x0", x0), ("v0", v0), ("gravity", gravity), ("effect_params", effect_params)):
+            if not torch.isfinite(t).all():
+                raise ValueError(f"{name} contains NaN or inf values")
+        if not isinstance(n_frames, int) or n_frames < 0:
+            raise ValueError(f"n_frames must be an integer >= 0, got {n_frames!r}")
+        xs = x0.detach().cpu().numpy()
+        spec = self.grid_for(xs, v0.detach().mean(0).cpu().numpy(), n_frames, gravity.detach().cpu().numpy())
+        self.set_grid(spec)
+        outside = ~spec.contains(xs)
+        if outside.any():
+            i = int(np.nonzero(outside)[0][0])
+            raise OutOfDomainError(
+                f"{int(outside.sum())} initial particle(s) lie outside the simulation domain "
+                f"[{np.round(spec.origin, 3).tolist()}, {np.round(spec.upper, 3).tolist()}], e.g. particle {i} at "
+                f"{np.round(xs[i], 4).tolist()}; enlarge SimConfig.domain",
+                frame=0, substep=0,
+            )
+        to = lambda t: t.to(device=dev, dtype=torch.float32).contiguous()  # noqa: E731
+        return to(x0), to(v0), to(params), to(gravity), to(effect_params)
+
+    # ------------------------------------------------------------------ public API
+    def simulate(
+        self,
+        x0: torch.Tensor,
+        v0: torch.Tensor | None = None,
+        params: torch.Tensor | None = None,
+        gravity: torch.Tensor | None = None,
+        effect_params: torch.Tensor | None = None,
+        n_frames: int = 1,
+    ) -> SimulationResult:
+        """Differentiable rollout.
+
+        Args:
+            x0: (N, 3) initial positions, metres.
+            v0: (3,) one initial velocity for all particles, or (N, 3); m/s. Default zero.
+            params: material parameters in physical units, (P,) or (N, P) in
+                ``material.param_names`` order (see ``material.pack``); default the material's
+                defaults.
+            gravity: (3,) m/s^2; default ``config.gravity``.
+            effect_params: (E,) flat effect parameters (``pack_effects``); default the effects'
+                defaults.
+            n_frames: number of frames to simulate after the initial one.
+
+        Returns:
+            :class:`SimulationResult` with positions and velocities of shape (n_frames + 1, N, 3).
+        """
+        from toolkit.mpm.autograd import SimulateFunction
+
+        x0t, v0t, pt, gt, et = self._prepare(x0, v0, params, gravity, effect_params, n_frames)
+        holder: dict = {}
+        pos, vel = SimulateFunction.apply(self, n_frames, holder, x0t, v0t, pt, gt, et)
+        return SimulationResult(pos, vel, holder["substeps"])
+
+    @torch.no_grad()
+    def rollout(
+        self,
+        x0,
+        v0=None,
+        params=None,
+        gravity=None,
+        effect_params=None,
+        n_frames: int = 1,
+        return_deformation: bool = False,
+    ) -> RolloutResult:
+        """Forward-only rollout (no gradients); same arguments as :meth:`simulate`."""
+        x0t, v0t, pt, gt, et = self._prepare(x0, v0, params, gravity, effect_params, n_frames)
+        with self.stream():
+            out = self.forward_with_retries(
+                x0t, v0t, pt, gt, et, n_frames, keep_checkpoints=False, return_deformation=return_deformation
+            )
+        return RolloutResult(out["positions"], out["velocities"], out["substeps"], out.get("F"), out.get("J"))
+
+    # ------------------------------------------------------------------ forward core
+    def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints, return_deformation=False):
+        """Forward pass with optional automatic dt halving on CFL/NaN failures."""
+        substeps = self.config.substeps
+        for attempt in range(self.config.max_dt_halvings + 1):
+            try:
+                return self._forward(x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation)
+            except (CFLError, NaNError) as err:
+                if not self.config.auto_dt_halving or attempt == self.config.max_dt_halvings:
+                    raise
+                log.warning("%s; halving dt (substeps %d -> %d) and rerunning", type(err).__name__, substeps, 2 * substeps)
+                substeps *= 2
+        raise AssertionError("unreachable")
+
+    def chunks(self, n_frames: int, substeps: int) -> list[tuple[int, int, int]]:
+        """Checkpoint chunks as (frame, first global substep, length); none straddles a frame."""
+        k = self.config.checkpoint_every
+        out = []
+        for f in range(n_frames):
+            s = 0
+            while s < substeps:
+                length = min(k, substeps - s)
+                out.append((f, f * substeps + s, length))
+                s += length
+        return out
+
+    def _wp(self, t: torch.Tensor, dtype, requires_grad: bool = False):
+        return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=requires_grad)
+
+    def _forward(self, x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation):
+        n = x0.shape[0]
+        dt = self.config.frame_dt / substeps
+        dev = self._torch_device
+        a, b, grid = self._pingpong(n)
+        status = wp.full(4, NO_FLAG, dtype=wp.int32, device=self.device)
+        wp_params = self._wp(params, wp.float32)
+        wp_gravity = self._wp(gravity.reshape(1, 3), wp.vec3)
+        wp_effects = self._wp(effect_params, wp.float32)
+        per_particle = int(params.shape[0] == n and n > 1)
+        wp.launch(init_state, dim=n, inputs=[self._wp(x0, wp.vec3), self._wp(v0, wp.vec3), a.x, a.v, a.C, a.F, a.J], device=self.device)
+
+        positions = torch.empty((n_frames + 1, n, 3), dtype=torch.float32, device=dev)
+        velocities = torch.empty_like(positions)
+        wp_pos = wp.from_torch(positions, dtype=wp.vec3)
+        wp_vel = wp.from_torch(velocities, dtype=wp.vec3)
+        wp.launch(store_frame, dim=n, inputs=[a.x, a.v, 0, wp_pos, wp_vel], device=self.device)
+        Fs = Js = None
+        if return_deformation:
+            Fs = torch.empty((n_frames + 1, n, 3, 3), dtype=torch.float32, device=dev)
+            Js = torch.empty((n_frames + 1, n), dtype=torch.float32, device=dev)
+            Fs[0] = wp.to_torch(a.F)
+            Js[0] = wp.to_torch(a.J)
+        checkpoints: list[_ParticleState] = []
+        chunk_starts = {s for _, s, _ in self.chunks(n_frames, substeps)} if keep_checkpoints else set()
+        step = 0
+        for f in range(n_frames):
+            for _ in range(substeps):
+                if step in chunk_starts:
+                    ck = _ParticleState(n, self.device)
+                    ck.assign(a)
+                    checkpoints.append(ck)
+                self._substep(a, b, grid, wp_params, per_particle, wp_gravity, wp_effects, dt, step, status)
+                a, b = b, a
+                step += 1
+            wp.launch(store_frame, dim=n, inputs=[a.x, a.v, f + 1, wp_pos, wp_vel], device=self.device)
+            if return_deformation:
+                Fs[f + 1] = wp.to_torch(a.F)
+                Js[f + 1] = wp.to_torch(a.J)
+            if self.config.check_every_frame or f == n_frames - 1:
+                self._check_status(status, f, substeps, a)
+        out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
+        if return_deformation:
+            out["F"], out["J"] = Fs, Js
+        return out
