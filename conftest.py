@@ -1,4 +1,5 @@
-"""Repository-wide pytest set-up: Warp's kernel cache lives in a repo-local ignored folder."""
+"""Repository-wide pytest set-up: Warp's kernel cache lives in a repo-local ignored folder
+(``.warp_cache/<warp version>``, via ``WARP_CACHE_PATH``, read when Warp initializes)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,5 @@ os.environ.setdefault("WARP_CACHE_PATH", str(_ROOT / ".warp_cache"))
 def pytest_configure(config):  # noqa: D103
     import warp as wp
 
-    wp.config.kernel_cache_dir = os.environ["WARP_CACHE_PATH"]
     wp.config.quiet = True
     wp.init()

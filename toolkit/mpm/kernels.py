@@ -20,7 +20,15 @@ from typing import Callable, Sequence
 
 import warp as wp
 
-__all__ = ["NO_FLAG", "make_p2g_kernel", "make_grid_update_kernel", "g2p", "store_frame", "compose_effects"]
+__all__ = [
+    "NO_FLAG",
+    "make_p2g_kernel",
+    "make_grid_update_kernel",
+    "g2p",
+    "advect_tracers",
+    "store_frame",
+    "compose_effects",
+]
 
 NO_FLAG = 2**31 - 1
 
@@ -250,6 +258,35 @@ def g2p(
     x_out[p] = x_new
     v_out[p] = new_v
     C_out[p] = new_C
+
+
+@wp.kernel
+def advect_tracers(
+    y: wp.array(dtype=wp.vec3),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    y_out: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    dx: float,
+    dt: float,
+):
+    """Move passive tracer points (no mass) with the B-spline-interpolated grid velocity.
+
+    Tracers outside the grid are clamped to it; they never affect the simulation.
+    """
+    q = wp.tid()
+    nx = grid_v.shape[0]
+    ny = grid_v.shape[1]
+    nz = grid_v.shape[2]
+    X = (y[q] - origin) * (1.0 / dx)
+    base = stencil_base(X, nx, ny, nz)
+    fx = X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    vel = wp.vec3(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                vel = vel + (w[i, 0] * w[j, 1] * w[k, 2]) * grid_v[base[0] + i, base[1] + j, base[2] + k]
+    y_out[q] = y[q] + dt * vel
 
 
 @wp.kernel

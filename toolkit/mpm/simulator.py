@@ -35,6 +35,7 @@ from toolkit.mpm.effects import Effect, EffectContext, get_effect
 from toolkit.mpm.kernels import (
     NO_FLAG,
     compose_effects,
+    advect_tracers,
     g2p,
     init_state,
     make_grid_update_kernel,
@@ -95,14 +96,16 @@ class SimulationResult:
 
 @dataclass
 class RolloutResult:
-    """Forward-only output (numpy or torch, no gradients): like :class:`SimulationResult`, plus
-    ``F`` (T+1, N, 3, 3) deformation gradients and ``J`` (T+1, N) volume ratios when asked for."""
+    """Forward-only output (torch, no gradients): like :class:`SimulationResult`, plus
+    ``F`` (T+1, N, 3, 3) deformation gradients and ``J`` (T+1, N) volume ratios when asked for,
+    and ``tracers`` (T+1, M, 3) positions of passive tracer points when given."""
 
     positions: torch.Tensor
     velocities: torch.Tensor
     substeps: int
     F: Optional[torch.Tensor] = None
     J: Optional[torch.Tensor] = None
+    tracers: Optional[torch.Tensor] = None
 
 
 class _ParticleState:
@@ -335,7 +338,7 @@ class MPMSimulator:
 
     # ------------------------------------------------------------------ substeps
     def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
-                 gravity, effect_params, dt: float, step: int, status) -> None:
+                 gravity, effect_params, dt: float, step: int, status, tracers=None) -> None:
         p2g, grid_update = self._kernels()
         cfg = self.config
         spec = self._grid
@@ -355,6 +358,9 @@ class MPMSimulator:
             inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt],
             device=self.device,
         )
+        if tracers is not None:
+            wp.launch(advect_tracers, dim=tracers[0].shape[0], inputs=[tracers[0], grid.v, tracers[1], origin, spec.dx, dt],
+                      device=self.device)
         wp.launch(
             g2p,
             dim=n,
@@ -496,22 +502,39 @@ class MPMSimulator:
         effect_params=None,
         n_frames: int = 1,
         return_deformation: bool = False,
+        tracers=None,
     ) -> RolloutResult:
-        """Forward-only rollout (no gradients); same arguments as :meth:`simulate`."""
+        """Forward-only rollout (no gradients); same arguments as :meth:`simulate`, plus:
+
+        Args:
+            return_deformation: also return F and J per frame.
+            tracers: optional (M, 3) passive points (e.g. the surface mesh's vertices) moved with
+                the grid velocity; they do not affect the simulation.
+        """
         x0t, v0t, pt, gt, et = self._prepare(x0, v0, params, gravity, effect_params, n_frames)
+        tr = None
+        if tracers is not None:
+            tr = torch.as_tensor(np.asarray(tracers) if not isinstance(tracers, torch.Tensor) else tracers, dtype=torch.float32)
+            if tr.ndim != 2 or tr.shape[1] != 3 or not torch.isfinite(tr).all():
+                raise ValueError(f"tracers must be a finite (M, 3) array, got shape {tuple(tr.shape)}")
+            tr = tr.to(self._torch_device).contiguous()
         with self.stream():
             out = self.forward_with_retries(
-                x0t, v0t, pt, gt, et, n_frames, keep_checkpoints=False, return_deformation=return_deformation
+                x0t, v0t, pt, gt, et, n_frames, keep_checkpoints=False, return_deformation=return_deformation, tracers=tr
             )
-        return RolloutResult(out["positions"], out["velocities"], out["substeps"], out.get("F"), out.get("J"))
+        return RolloutResult(
+            out["positions"], out["velocities"], out["substeps"], out.get("F"), out.get("J"), out.get("tracers")
+        )
 
     # ------------------------------------------------------------------ forward core
-    def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints, return_deformation=False):
+    def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints,
+                             return_deformation=False, tracers=None):
         """Forward pass with optional automatic dt halving on CFL/NaN failures."""
         substeps = self.config.substeps
         for attempt in range(self.config.max_dt_halvings + 1):
             try:
-                return self._forward(x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation)
+                return self._forward(x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints,
+                                     return_deformation, tracers)
             except (CFLError, NaNError) as err:
                 if not self.config.auto_dt_halving or attempt == self.config.max_dt_halvings:
                     raise
@@ -534,7 +557,8 @@ class MPMSimulator:
     def _wp(self, t: torch.Tensor, dtype, requires_grad: bool = False):
         return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=requires_grad)
 
-    def _forward(self, x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation):
+    def _forward(self, x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation,
+                 tracers=None):
         n = x0.shape[0]
         dt = self.config.frame_dt / substeps
         dev = self._torch_device
@@ -557,6 +581,12 @@ class MPMSimulator:
             Js = torch.empty((n_frames + 1, n), dtype=torch.float32, device=dev)
             Fs[0] = wp.to_torch(a.F)
             Js[0] = wp.to_torch(a.J)
+        tr_pair = tr_out = None
+        if tracers is not None:
+            m = tracers.shape[0]
+            tr_pair = [wp.clone(wp.from_torch(tracers, dtype=wp.vec3)), wp.zeros(m, dtype=wp.vec3, device=self.device)]
+            tr_out = torch.empty((n_frames + 1, m, 3), dtype=torch.float32, device=dev)
+            tr_out[0] = tracers
         checkpoints: list[_ParticleState] = []
         chunk_starts = {s for _, s, _ in self.chunks(n_frames, substeps)} if keep_checkpoints else set()
         step = 0
@@ -566,10 +596,14 @@ class MPMSimulator:
                     ck = _ParticleState(n, self.device)
                     ck.assign(a)
                     checkpoints.append(ck)
-                self._substep(a, b, grid, wp_params, per_particle, wp_gravity, wp_effects, dt, step, status)
+                self._substep(a, b, grid, wp_params, per_particle, wp_gravity, wp_effects, dt, step, status, tr_pair)
                 a, b = b, a
+                if tr_pair is not None:
+                    tr_pair.reverse()
                 step += 1
             wp.launch(store_frame, dim=n, inputs=[a.x, a.v, f + 1, wp_pos, wp_vel], device=self.device)
+            if tr_pair is not None:
+                tr_out[f + 1] = wp.to_torch(tr_pair[0])
             if return_deformation:
                 Fs[f + 1] = wp.to_torch(a.F)
                 Js[f + 1] = wp.to_torch(a.J)
@@ -578,4 +612,6 @@ class MPMSimulator:
         out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
         if return_deformation:
             out["F"], out["J"] = Fs, Js
+        if tr_out is not None:
+            out["tracers"] = tr_out
         return out
