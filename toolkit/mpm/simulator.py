@@ -372,37 +372,39 @@ class MPMSimulator:
     # ------------------------------------------------------------------ checks
     def _check_status(self, status, frame: int, substeps: int, state: _ParticleState) -> None:
         flags = status.numpy()
-        if flags[2] != NO_FLAG:
-            s = int(flags[2])
-            raise NaNError(
-                f"NaN or inf in particle positions/velocities at frame {s // substeps} (substep {s % substeps} of "
-                f"{substeps}, global substep {s}); the material parameters may be too stiff for dt = "
-                f"{self.config.frame_dt / substeps:.3g} s: increase SimConfig.substeps or enable auto_dt_halving",
-                frame=s // substeps, substep=s,
-            )
-        if flags[0] != NO_FLAG and self.config.out_of_domain == "error":
-            s = int(flags[0])
+        oob = flags[0] if self.config.out_of_domain == "error" else NO_FLAG
+        first = min(int(oob), int(flags[1]), int(flags[2]))
+        if first == NO_FLAG:
+            return
+        # report the failure that happened first: a particle that left the grid or moved too fast
+        # is what later turns into NaNs
+        s = first
+        where = f"frame {s // substeps} (substep {s % substeps} of {substeps}, global substep {s})"
+        if oob == first:
             x = state.x.numpy()
             outside = ~self._grid.contains(x)
-            idx = np.nonzero(outside)[0]
+            idx = np.nonzero(outside & np.all(np.isfinite(x), axis=1))[0]
             lo, hi = self._grid.origin, self._grid.upper
-            detail = f"{len(idx)} particle(s), e.g. particle {idx[0]} at {np.round(x[idx[0]], 4).tolist()}" if len(idx) else "particles"
+            detail = f"{int(outside.sum())} particle(s), e.g. particle {idx[0]} at {np.round(x[idx[0]], 4).tolist()}," if len(idx) else "particles"
             raise OutOfDomainError(
                 f"{detail} left the simulation domain [{np.round(lo, 3).tolist()}, {np.round(hi, 3).tolist()}] "
-                f"at frame {s // substeps} (global substep {s}); enlarge SimConfig.domain or SimConfig.margin, "
-                "or set out_of_domain='clamp'",
+                f"at {where}; enlarge SimConfig.domain or SimConfig.margin, or set out_of_domain='clamp'",
                 frame=s // substeps, substep=s,
             )
-        if flags[1] != NO_FLAG:
-            s = int(flags[1])
+        if flags[1] == first:
             v = np.linalg.norm(state.v.numpy(), axis=1)
+            vmax = np.nanmax(v) if np.isfinite(v).any() else float("nan")
             raise CFLError(
-                f"CFL violation at frame {s // substeps} (substep {s % substeps} of {substeps}, global substep {s}): a "
-                f"particle moved more than {self.config.cfl} dx in one substep (max speed now {v.max():.3g} m/s, limit "
-                f"{self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); increase "
-                "SimConfig.substeps or enable auto_dt_halving",
+                f"CFL violation at {where}: a particle moved more than {self.config.cfl} dx in one substep (max speed "
+                f"now {vmax:.3g} m/s, limit {self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); "
+                "increase SimConfig.substeps or enable auto_dt_halving",
                 frame=s // substeps, substep=s,
             )
+        raise NaNError(
+            f"NaN or inf in particle positions/velocities at {where}; the material may be too stiff for dt = "
+            f"{self.config.frame_dt / substeps:.3g} s: increase SimConfig.substeps or enable auto_dt_halving",
+            frame=s // substeps, substep=s,
+        )
 
     # ------------------------------------------------------------------ inputs
     def _prepare(self, x0, v0, params, gravity, effect_params, n_frames):

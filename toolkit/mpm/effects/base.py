@@ -65,7 +65,7 @@ class EffectParam:
         v = float(value)
         if not math.isfinite(v) or not (self.low <= v <= self.high):
             raise EffectError(
-                f"{effect}.{self.name} = {value!r} is out of range: expected {self.low:g} <= {self.name} <= {self.high:g}"
+                f"{effect}.{self.name} = {v:g} is out of range: expected {self.low:g} <= {self.name} <= {self.high:g}"
                 + (f" {self.units}" if self.units else "")
             )
 
