@@ -35,8 +35,8 @@ def _verify_array_access():
     wp.config.verify_autograd_array_access = previous
 
 
-def _scene(material: str, device: str, checkpoint_every: int = 7, effects=()):
-    cfg = SimConfig(dx=0.05, substeps=20, checkpoint_every=checkpoint_every, boundary="sticky")
+def _scene(material: str, device: str, checkpoint_every: int = 7, effects=(), graphs="auto"):
+    cfg = SimConfig(dx=0.05, substeps=20, checkpoint_every=checkpoint_every, boundary="sticky", graphs=graphs)
     sim = MPMSimulator(material, cfg, effects=effects, device=device)
     x0 = block((5, 5, 5), 0.025, (0.5, 0.08, 0.5))
     gen = torch.Generator().manual_seed(0)
@@ -96,8 +96,9 @@ def test_gradients_match_finite_differences(material, device):
 @pytest.mark.parametrize("material", ["neo_hookean", "plasticine"])
 def test_chunked_gradients_equal_unchunked(material, device):
     grads = []
-    for every in (1, 7, 1000):
-        sim, x0, w, _ = _scene(material, device, checkpoint_every=every)
+    # the last variant replays each chunk's recompute + adjoint as a captured Warp graph
+    for every, graphs in ((1, False), (7, False), (1000, False), (7, True)):
+        sim, x0, w, _ = _scene(material, device, checkpoint_every=every, graphs=graphs)
         leaves = [t.clone().requires_grad_() for t in (x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_raw(CASES[material]),
                                                        torch.tensor([0.0, -9.8, 0.0]))]
         _loss(sim, w, *leaves).backward()

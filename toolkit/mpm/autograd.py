@@ -65,25 +65,38 @@ class SimulateFunction(torch.autograd.Function):
             carry_x, carry_v = wp.to_torch(carry[0]), wp.to_torch(carry[1])
             status = wp.full(4, NO_FLAG, dtype=wp.int32, device=sim.device)
 
-            for c in range(len(chunks) - 1, -1, -1):
-                frame, first, length = chunks[c]
-                if first + length == (frame + 1) * substeps:
-                    carry_x += g_pos[frame + 1]
-                    carry_v += g_vel[frame + 1]
-                states[0].assign(ctx.checkpoints[c])
-                for s in states[: length + 1]:
-                    s.zero_grad()
+            args = (wp_params, per_particle, wp_gravity, wp_effects, dt)
+
+            def chunk_backward(local: int, length: int) -> None:
+                # recompute the chunk on a tape (one state and grid per substep), then its adjoint
+                for st in states[: length + 1]:
+                    st.zero_grad()
                 for g in grids[:length]:
                     g.zero_grad()
                 tape = wp.Tape()
                 with tape:
                     for k in range(length):
-                        sim._substep(states[k], states[k + 1], grids[k], wp_params, per_particle, wp_gravity, wp_effects,
-                                     dt, first + k, status)
-                end = states[length].arrays()
-                tape.backward(grads={a: g for a, g in zip(end, carry)})
+                        sim._substep(states[k], states[k + 1], grids[k], *args, local + k, status)
+                tape.backward(grads={a: g for a, g in zip(states[length].arrays(), carry)})
                 for dst, src in zip(carry, states[0].arrays()):
                     wp.copy(dst, src.grad)
+
+            graphs = {} if sim.use_graphs() else None
+            for c in range(len(chunks) - 1, -1, -1):
+                frame, first, length = chunks[c]
+                local = first - frame * substeps
+                if local + length == substeps:
+                    carry_x += g_pos[frame + 1]
+                    carry_v += g_vel[frame + 1]
+                states[0].assign(ctx.checkpoints[c])
+                if graphs is None:
+                    chunk_backward(local, length)
+                    continue
+                if (local, length) not in graphs:
+                    with wp.ScopedCapture(device=sim.device, force_module_load=True) as capture:
+                        chunk_backward(local, length)
+                    graphs[(local, length)] = capture.graph
+                wp.capture_launch(graphs[(local, length)])
 
             g_x0 = carry_x + g_pos[0]
             g_v0 = carry_v + g_vel[0]

@@ -60,8 +60,8 @@ class SimConfig:
         out_of_domain: ``error`` raises :class:`OutOfDomainError` when a particle leaves the grid;
             ``clamp`` keeps particles inside (domain faces act as separating walls).
         cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
-        check_every_frame: check CFL/NaN/out-of-domain flags after every frame (one host sync per
-            frame). When off, they are checked once at the end of the rollout.
+        graphs: capture chains of substeps as Warp graphs and replay them (removes the Python
+            launch overhead that dominates small GPU problems): ``"auto"`` (CUDA only), True, False.
         auto_dt_halving: on a CFL or NaN failure, double the substeps and rerun (up to
             ``max_dt_halvings`` times) instead of raising.
         max_dt_halvings: see above.
@@ -82,7 +82,7 @@ class SimConfig:
     margin: float = 0.2
     out_of_domain: Literal["error", "clamp"] = "error"
     cfl: float = 0.4
-    check_every_frame: bool = True
+    graphs: bool | str = "auto"
     auto_dt_halving: bool = False
     max_dt_halvings: int = 3
     checkpoint_every: int = 25
@@ -109,6 +109,7 @@ class SimConfig:
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl!r}")
         need(self.margin >= 0, f"margin must be >= 0 metres, got {self.margin!r}")
         need(isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1, f"checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")
+        need(self.graphs in (True, False, "auto"), f"graphs must be True, False or 'auto', got {self.graphs!r}")
         need(self.max_dt_halvings >= 0, f"max_dt_halvings must be >= 0, got {self.max_dt_halvings!r}")
         if self.domain is not None:
             lo, hi = self.domain

@@ -339,6 +339,7 @@ class MPMSimulator:
     # ------------------------------------------------------------------ substeps
     def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
                  gravity, effect_params, dt: float, step: int, status, tracers=None) -> None:
+        """One substep s_in -> s_out; ``step`` is the frame-local substep index written to the flags."""
         p2g, grid_update = self._kernels()
         cfg = self.config
         spec = self._grid
@@ -371,6 +372,7 @@ class MPMSimulator:
 
     # ------------------------------------------------------------------ checks
     def _check_status(self, status, frame: int, substeps: int, state: _ParticleState) -> None:
+        """Raise for the first failure flagged during ``frame`` (flags hold frame-local substeps)."""
         flags = status.numpy()
         oob = flags[0] if self.config.out_of_domain == "error" else NO_FLAG
         first = min(int(oob), int(flags[1]), int(flags[2]))
@@ -378,9 +380,9 @@ class MPMSimulator:
             return
         # report the failure that happened first: a particle that left the grid or moved too fast
         # is what later turns into NaNs
-        s = first
+        s = frame * substeps + min(first, substeps - 1)
         where = f"frame {s // substeps} (substep {s % substeps} of {substeps}, global substep {s})"
-        if oob == first:
+        if int(oob) == first:
             x = state.x.numpy()
             outside = ~self._grid.contains(x)
             idx = np.nonzero(outside & np.all(np.isfinite(x), axis=1))[0]
@@ -391,7 +393,7 @@ class MPMSimulator:
                 f"at {where}; enlarge SimConfig.domain or SimConfig.margin, or set out_of_domain='clamp'",
                 frame=s // substeps, substep=s,
             )
-        if flags[1] == first:
+        if int(flags[1]) == first:
             v = np.linalg.norm(state.v.numpy(), axis=1)
             vmax = np.nanmax(v) if np.isfinite(v).any() else float("nan")
             raise CFLError(
@@ -559,6 +561,42 @@ class MPMSimulator:
     def _wp(self, t: torch.Tensor, dtype, requires_grad: bool = False):
         return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=requires_grad)
 
+    def use_graphs(self) -> bool:
+        """Whether substep chains are captured as graphs (``SimConfig.graphs``: auto = CUDA only)."""
+        mode = self.config.graphs
+        return self.device.startswith("cuda") if mode == "auto" else bool(mode)
+
+    def _run_substeps(self, a, b, grid, args, first: int, length: int, status, tracers, graphs: dict | None):
+        """Run ``length`` substeps from state ``a`` (frame-local index ``first``); returns the new (a, b).
+
+        With ``graphs`` (a dict owned by the caller) the chain is captured once per
+        (first, length, buffer parity) and replayed afterwards.
+        """
+        def chain():
+            s_in, s_out = a, b
+            for k in range(length):
+                self._substep(s_in, s_out, grid, *args, first + k, status, tracers)
+                s_in, s_out = s_out, s_in
+                if tracers is not None:
+                    tracers.reverse()
+            return s_in, s_out
+
+        if graphs is None:
+            return chain()
+        key = (first, length, id(a), None if tracers is None else id(tracers[0]))
+        if key not in graphs:
+            tr_before = None if tracers is None else list(tracers)
+            with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
+                result = chain()
+            graphs[key] = (capture.graph, result, None if tracers is None else list(tracers))
+            if tracers is not None:
+                tracers[:] = tr_before  # the capture did not run anything: restore the order
+        graph, result, tr_after = graphs[key]
+        wp.capture_launch(graph)
+        if tracers is not None:
+            tracers[:] = tr_after
+        return result
+
     def _forward(self, x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation,
                  tracers=None):
         n = x0.shape[0]
@@ -566,10 +604,9 @@ class MPMSimulator:
         dev = self._torch_device
         a, b, grid = self._pingpong(n)
         status = wp.full(4, NO_FLAG, dtype=wp.int32, device=self.device)
-        wp_params = self._wp(params, wp.float32)
-        wp_gravity = self._wp(gravity.reshape(1, 3), wp.vec3)
-        wp_effects = self._wp(effect_params, wp.float32)
         per_particle = int(params.shape[0] == n and n > 1)
+        args = (self._wp(params, wp.float32), per_particle, self._wp(gravity.reshape(1, 3), wp.vec3),
+                self._wp(effect_params, wp.float32), dt)
         wp.launch(init_state, dim=n, inputs=[self._wp(x0, wp.vec3), self._wp(v0, wp.vec3), a.x, a.v, a.C, a.F, a.J], device=self.device)
 
         positions = torch.empty((n_frames + 1, n, 3), dtype=torch.float32, device=dev)
@@ -589,28 +626,25 @@ class MPMSimulator:
             tr_pair = [wp.clone(wp.from_torch(tracers, dtype=wp.vec3)), wp.zeros(m, dtype=wp.vec3, device=self.device)]
             tr_out = torch.empty((n_frames + 1, m, 3), dtype=torch.float32, device=dev)
             tr_out[0] = tracers
+        graphs = {} if self.use_graphs() else None
+        units = self.chunks(n_frames, substeps) if keep_checkpoints else [(f, f * substeps, substeps) for f in range(n_frames)]
         checkpoints: list[_ParticleState] = []
-        chunk_starts = {s for _, s, _ in self.chunks(n_frames, substeps)} if keep_checkpoints else set()
-        step = 0
-        for f in range(n_frames):
-            for _ in range(substeps):
-                if step in chunk_starts:
-                    ck = _ParticleState(n, self.device)
-                    ck.assign(a)
-                    checkpoints.append(ck)
-                self._substep(a, b, grid, wp_params, per_particle, wp_gravity, wp_effects, dt, step, status, tr_pair)
-                a, b = b, a
-                if tr_pair is not None:
-                    tr_pair.reverse()
-                step += 1
-            wp.launch(store_frame, dim=n, inputs=[a.x, a.v, f + 1, wp_pos, wp_vel], device=self.device)
+        for frame, first, length in units:
+            if keep_checkpoints:
+                ck = _ParticleState(n, self.device)
+                ck.assign(a)
+                checkpoints.append(ck)
+            local = first - frame * substeps
+            a, b = self._run_substeps(a, b, grid, args, local, length, status, tr_pair, graphs)
+            if local + length < substeps:
+                continue
+            wp.launch(store_frame, dim=n, inputs=[a.x, a.v, frame + 1, wp_pos, wp_vel], device=self.device)
             if tr_pair is not None:
-                tr_out[f + 1] = wp.to_torch(tr_pair[0])
+                tr_out[frame + 1] = wp.to_torch(tr_pair[0])
             if return_deformation:
-                Fs[f + 1] = wp.to_torch(a.F)
-                Js[f + 1] = wp.to_torch(a.J)
-            if self.config.check_every_frame or f == n_frames - 1:
-                self._check_status(status, f, substeps, a)
+                Fs[frame + 1] = wp.to_torch(a.F)
+                Js[frame + 1] = wp.to_torch(a.J)
+            self._check_status(status, frame, substeps, a)
         out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
         if return_deformation:
             out["F"], out["J"] = Fs, Js
