@@ -1,0 +1,1 @@
+"""Small subcommands of the ``projo4d`` CLI (one module each)."""
