@@ -253,3 +253,30 @@ def test_wall_stops_a_thrown_body(device):
     no_wall = sim_flip.rollout(x0, torch.tensor([2.0, 0.0, 0.0]), sim_flip.material.pack({"E": 2e4}),
                                effect_params=sim_flip.pack_effects({"wall": {"strength": 0.0, "offset": -wall_x}}), n_frames=8)
     assert no_wall.positions.cpu()[-1, :, 0].min() > wall_x
+
+
+def test_tracers_move_with_the_body_near_its_surface(device):
+    """Passive tracers up to one cell outside the body keep up with it (empty nodes do not slow them)."""
+    spacing = 0.01
+    lattice = (torch.stack(torch.meshgrid(*[torch.arange(-10, 10)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * spacing
+    x0 = (lattice[lattice.norm(dim=1) < 0.1] + torch.tensor([0.0, 1.0, 0.0])).contiguous()
+    tracers = torch.tensor([[0.1 + s * 0.02, 1.0, 0.0] for s in (0.0, 0.5, 0.75, 1.0)])
+    sim = MPMSimulator("neo_hookean", SimConfig(dx=0.02, substeps=50, gravity=(0, 0, 0), ground_height=None, margin=0.3),
+                       device=device)
+    out = sim.rollout(x0, torch.tensor([0.0, 0.0, 2.0]), sim.material.pack({"E": 1e5, "nu": 0.3}), n_frames=10, tracers=tracers)
+    body = (out.positions[-1] - out.positions[0]).mean(0).cpu()
+    moved = (out.tracers[-1] - out.tracers[0]).cpu()
+    assert body[2] == pytest.approx(2.0 * 10 / 24, rel=1e-3)
+    torch.testing.assert_close(moved, body.expand_as(moved), atol=0.01 * float(body[2]), rtol=0)
+
+
+def test_deterministic_option_is_local(device):
+    import warp as wp
+
+    before = wp.config.deterministic
+    sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=20, deterministic=True), device=device)
+    x0 = block((4, 4, 4), 0.025, (0.5, 0.2, 0.5))
+    a = sim.rollout(x0, torch.tensor([0.3, -1.0, 0.0]), sim.material.pack({"E": 1e4}), n_frames=3).positions
+    b = sim.rollout(x0, torch.tensor([0.3, -1.0, 0.0]), sim.material.pack({"E": 1e4}), n_frames=3).positions
+    assert torch.equal(a, b)
+    assert wp.config.deterministic == before

@@ -263,14 +263,18 @@ def g2p(
 @wp.kernel
 def advect_tracers(
     y: wp.array(dtype=wp.vec3),
+    grid_m: wp.array3d(dtype=float),
     grid_v: wp.array3d(dtype=wp.vec3),
     y_out: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
     dx: float,
     dt: float,
 ):
-    """Move passive tracer points (no mass) with the B-spline-interpolated grid velocity.
+    """Move passive tracer points (no mass) with the grid velocity.
 
+    The velocity is the B-spline average over the stencil nodes that carry mass, renormalized by
+    their weights, so a tracer on or slightly outside the body's surface moves with the body
+    instead of being slowed by empty nodes. A tracer with no massive node nearby stays put.
     Tracers outside the grid are clamped to it; they never affect the simulation.
     """
     q = wp.tid()
@@ -282,10 +286,16 @@ def advect_tracers(
     fx = X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     w = bspline_weights(fx)
     vel = wp.vec3(0.0)
+    wsum = float(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                vel = vel + (w[i, 0] * w[j, 1] * w[k, 2]) * grid_v[base[0] + i, base[1] + j, base[2] + k]
+                if grid_m[base[0] + i, base[1] + j, base[2] + k] > 1.0e-15:
+                    weight = w[i, 0] * w[j, 1] * w[k, 2]
+                    vel = vel + weight * grid_v[base[0] + i, base[1] + j, base[2] + k]
+                    wsum = wsum + weight
+    if wsum > 1.0e-6:
+        vel = vel / wsum
     y_out[q] = y[q] + dt * vel
 
 

@@ -174,8 +174,6 @@ class MPMSimulator:
         self.config.validate()
         self.effects: list[Effect] = [get_effect(e) for e in effects]
         self.device = str(wp.get_device(device))
-        if self.config.deterministic:
-            wp.config.deterministic = wp.DeterministicMode.RUN_TO_RUN
         self._grid: Optional[GridSpec] = None
         self._buffers: dict = {}
         offsets = np.cumsum([0] + [len(e.params) for e in self.effects]).tolist()
@@ -305,12 +303,17 @@ class MPMSimulator:
             cfg.ground_height,
             cfg.boundary,
             cfg.out_of_domain,
+            cfg.deterministic,
         )
         if key not in _KERNEL_CACHE:
             ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx)
             funcs = [e.build(off, ctx) for e, off in zip(self.effects, self._effect_offsets)]
+            p2g = make_p2g_kernel(self.material.warp_update())
+            if cfg.deterministic:
+                # P2G is the only kernel with float atomics; the option is local to its own module
+                p2g.module.options["deterministic"] = wp.DeterministicMode.RUN_TO_RUN
             _KERNEL_CACHE[key] = (
-                make_p2g_kernel(self.material.warp_update()),
+                p2g,
                 make_grid_update_kernel(compose_effects(funcs), cfg.ground_height, cfg.boundary, cfg.out_of_domain == "clamp"),
             )
         return _KERNEL_CACHE[key]
@@ -360,7 +363,7 @@ class MPMSimulator:
             device=self.device,
         )
         if tracers is not None:
-            wp.launch(advect_tracers, dim=tracers[0].shape[0], inputs=[tracers[0], grid.v, tracers[1], origin, spec.dx, dt],
+            wp.launch(advect_tracers, dim=tracers[0].shape[0], inputs=[tracers[0], grid.m, grid.v, tracers[1], origin, spec.dx, dt],
                       device=self.device)
         wp.launch(
             g2p,
