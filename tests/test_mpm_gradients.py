@@ -35,8 +35,9 @@ def _verify_array_access():
     wp.config.verify_autograd_array_access = previous
 
 
-def _scene(material: str, device: str, checkpoint_every: int = 7, effects=(), graphs="auto"):
-    cfg = SimConfig(dx=0.05, substeps=20, checkpoint_every=checkpoint_every, boundary="sticky", graphs=graphs)
+def _scene(material: str, device: str, checkpoint_every: int = 7, effects=(), graphs="auto", deterministic=False):
+    cfg = SimConfig(dx=0.05, substeps=20, checkpoint_every=checkpoint_every, boundary="sticky", graphs=graphs,
+                    deterministic=deterministic)
     sim = MPMSimulator(material, cfg, effects=effects, device=device)
     x0 = block((5, 5, 5), 0.025, (0.5, 0.08, 0.5))
     gen = torch.Generator().manual_seed(0)
@@ -98,7 +99,8 @@ def test_chunked_gradients_equal_unchunked(material, device):
     grads = []
     # the last variant replays each chunk's recompute + adjoint as a captured Warp graph
     for every, graphs in ((1, False), (7, False), (1000, False), (7, True)):
-        sim, x0, w, _ = _scene(material, device, checkpoint_every=every, graphs=graphs)
+        # deterministic atomics: on CUDA the order of float atomics would otherwise differ between runs
+        sim, x0, w, _ = _scene(material, device, checkpoint_every=every, graphs=graphs, deterministic=True)
         leaves = [t.clone().requires_grad_() for t in (x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_raw(CASES[material]),
                                                        torch.tensor([0.0, -9.8, 0.0]))]
         _loss(sim, w, *leaves).backward()
@@ -146,3 +148,24 @@ def test_memory_does_not_grow_with_substeps(device):
         _loss(sim, w, *leaves).backward()
         pools = [k for k in sim._buffers if k[0] == "pool"]
         assert pools == [("pool", x0.shape[0], 5)]
+
+
+def test_cached_graphs_see_new_inputs(device):
+    """Graphs are captured once per simulator and replayed; each call's inputs must still be used."""
+    results = {}
+    for graphs in (False, True):
+        sim, x0, w, _ = _scene("plasticine", device, graphs=graphs)
+        runs = []
+        for E, v in ((2e4, 0.3), (5e4, -0.2), (2e4, 0.3)):
+            raw = sim.material.to_raw({"E": E, "nu": 0.3, "yield_stress": 300.0}).requires_grad_()
+            v0 = torch.tensor([v, -0.5, 0.1], requires_grad=True)
+            loss = _loss(sim, w, x0, v0, raw, torch.tensor([0.0, -9.8, 0.0]))
+            loss.backward()
+            runs.append((loss.item(), raw.grad.clone(), v0.grad.clone()))
+        results[graphs] = runs
+    for (la, ra, va), (lb, rb, vb) in zip(results[False], results[True]):
+        assert la == pytest.approx(lb, rel=1e-5)
+        torch.testing.assert_close(ra, rb, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(va, vb, rtol=1e-4, atol=1e-6)
+    # the second call differs from the first (the inputs really changed)
+    assert abs(results[True][0][0] - results[True][1][0]) > 1e-3

@@ -5,16 +5,9 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from toolkit.mpm.kernels import NO_FLAG
+from toolkit.mpm.kernels import accumulate_vec3
 
 __all__ = ["SimulateFunction"]
-
-
-def _grad_param(t: torch.Tensor, dtype) -> "wp.array":
-    """A Warp copy of ``t`` with a zeroed gradient buffer (gradients accumulate over chunks)."""
-    arr = wp.clone(wp.from_torch(t.detach().contiguous(), dtype=dtype))
-    arr.requires_grad = True
-    return arr
 
 
 class SimulateFunction(torch.autograd.Function):
@@ -57,13 +50,16 @@ class SimulateFunction(torch.autograd.Function):
         per_particle = int(params.shape[0] == n and n > 1)
 
         with sim.stream():
-            wp_params = _grad_param(params, wp.float32)
-            wp_gravity = _grad_param(gravity.reshape(1, 3), wp.vec3)
-            wp_effects = _grad_param(effect_params, wp.float32)
             states, grids = sim._pool(n, max(length for _, _, length in chunks))
-            carry = [wp.zeros_like(a) for a in states[0].arrays()]
-            carry_x, carry_v = wp.to_torch(carry[0]), wp.to_torch(carry[1])
-            status = wp.full(4, NO_FLAG, dtype=wp.int32, device=sim.device)
+            wp_params, wp_gravity, wp_effects = sim._inputs(params, gravity, effect_params)
+            for a in (wp_params, wp_gravity, wp_effects):
+                a.grad.zero_()
+            carry = sim._persistent(("carry", n), lambda: [wp.zeros_like(a) for a in states[0].arrays()])
+            for a in carry:
+                a.zero_()
+            g_pos_wp = wp.from_torch(g_pos, dtype=wp.vec3)
+            g_vel_wp = wp.from_torch(g_vel, dtype=wp.vec3)
+            status = sim._status()
 
             args = (wp_params, per_particle, wp_gravity, wp_effects, dt)
 
@@ -81,26 +77,28 @@ class SimulateFunction(torch.autograd.Function):
                 for dst, src in zip(carry, states[0].arrays()):
                     wp.copy(dst, src.grad)
 
-            graphs = {} if sim.use_graphs() else None
+            graphs = sim._graphs if sim.use_graphs() else None
             for c in range(len(chunks) - 1, -1, -1):
                 frame, first, length = chunks[c]
                 local = first - frame * substeps
                 if local + length == substeps:
-                    carry_x += g_pos[frame + 1]
-                    carry_v += g_vel[frame + 1]
+                    wp.launch(accumulate_vec3, dim=n, inputs=[carry[0], g_pos_wp[frame + 1]], device=sim.device)
+                    wp.launch(accumulate_vec3, dim=n, inputs=[carry[1], g_vel_wp[frame + 1]], device=sim.device)
                 states[0].assign(ctx.checkpoints[c])
                 if graphs is None:
                     chunk_backward(local, length)
                     continue
-                if (local, length) not in graphs:
+                key = ("backward", local, length, id(states[0].x), id(wp_params), per_particle, dt)
+                if key not in graphs:
                     with wp.ScopedCapture(device=sim.device, force_module_load=True) as capture:
                         chunk_backward(local, length)
-                    graphs[(local, length)] = capture.graph
-                wp.capture_launch(graphs[(local, length)])
+                    graphs[key] = capture.graph
+                wp.capture_launch(graphs[key])
 
-            g_x0 = carry_x + g_pos[0]
-            g_v0 = carry_v + g_vel[0]
-            g_params = wp.to_torch(wp_params.grad).clone()
-            g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
-            g_effects = wp.to_torch(wp_effects.grad).clone()
-        return None, None, None, g_x0.clone(), g_v0.clone(), g_params, g_gravity, g_effects
+        # torch's stream has waited for the Warp work (sim.stream())
+        g_x0 = wp.to_torch(carry[0]) + g_pos[0]
+        g_v0 = wp.to_torch(carry[1]) + g_vel[0]
+        g_params = wp.to_torch(wp_params.grad).clone()
+        g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
+        g_effects = wp.to_torch(wp_effects.grad)[: effect_params.shape[0]].clone()
+        return None, None, None, g_x0, g_v0, g_params, g_gravity, g_effects

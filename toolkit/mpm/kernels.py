@@ -24,7 +24,7 @@ __all__ = [
     "NO_FLAG",
     "make_p2g_kernel",
     "make_grid_update_kernel",
-    "g2p",
+    "make_g2p_kernel",
     "advect_tracers",
     "store_frame",
     "compose_effects",
@@ -60,14 +60,20 @@ def inside(X: wp.vec3, nx: int, ny: int, nz: int):
     return ok and X[0] < float(nx) - 1.5 and X[1] < float(ny) - 1.5 and X[2] < float(nz) - 1.5
 
 
-def make_p2g_kernel(update: Callable) -> "wp.Kernel":
+def _options(deterministic: bool) -> dict | None:
+    """Module options: Warp's deterministic float atomics (forward and adjoint) when asked for."""
+    return {"deterministic": wp.DeterministicMode.RUN_TO_RUN} if deterministic else None
+
+
+def make_p2g_kernel(update: Callable, deterministic: bool = False) -> "wp.Kernel":
     """P2G with the material update fused in.
 
     Args:
         update: the material's ``@wp.func`` ``(F_tmp, C, J, dt, p, row) -> (F_new, J_new, tau)``.
+        deterministic: compile with Warp's deterministic atomics (reproducible on CUDA, slower).
     """
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options=_options(deterministic))
     def p2g(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
@@ -141,7 +147,7 @@ def _then(first: Callable, second: Callable) -> Callable:
 
 
 def make_grid_update_kernel(
-    effects: Callable, ground_height: float | None, boundary: str, domain_walls: bool
+    effects: Callable, ground_height: float | None, boundary: str, domain_walls: bool, deterministic: bool = False
 ) -> "wp.Kernel":
     """Grid update: momentum -> velocity, gravity, effects, ground and domain boundaries.
 
@@ -150,12 +156,13 @@ def make_grid_update_kernel(
         ground_height: y of the ground plane, or ``None`` for no ground.
         boundary: ``sticky``, ``slip`` or ``separate`` (ground contact at nodes with y <= ground).
         domain_walls: apply separating walls on the outer two node layers (``clamp`` mode).
+        deterministic: deterministic atomics (the adjoint reduces into gravity and effect parameters).
     """
     has_ground = ground_height is not None
     ground = float(ground_height) if has_ground else 0.0
     mode = {"sticky": 0, "slip": 1, "separate": 2}[boundary]
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", module_options=_options(deterministic))
     def grid_update(
         grid_m: wp.array3d(dtype=float),
         grid_mv: wp.array3d(dtype=wp.vec3),
@@ -206,58 +213,69 @@ def make_grid_update_kernel(
     return grid_update
 
 
-@wp.kernel
-def g2p(
-    x: wp.array(dtype=wp.vec3),
-    grid_v: wp.array3d(dtype=wp.vec3),
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    origin: wp.vec3,
-    dx: float,
-    dt: float,
-    cfl_speed: float,
-    clamp_particles: int,
-    status: wp.array(dtype=wp.int32),
-    step: int,
-):
-    """Grid-to-particle transfer: velocity, APIC matrix C = 4/dx^2 sum w v (x_i - x_p)^T, x += dt v."""
-    p = wp.tid()
-    nx = grid_v.shape[0]
-    ny = grid_v.shape[1]
-    nz = grid_v.shape[2]
-    inv_dx = 1.0 / dx
-    X = (x[p] - origin) * inv_dx
-    base = stencil_base(X, nx, ny, nz)
-    fx = X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w = bspline_weights(fx)
-    new_v = wp.vec3(0.0)
-    new_C = wp.mat33(0.0)
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                dpos = wp.vec3(float(i), float(j), float(k)) - fx
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
-                new_v = new_v + weight * gv
-                new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
-    x_new = x[p] + dt * new_v
-    speed2 = wp.dot(new_v, new_v)
-    if not (speed2 <= cfl_speed * cfl_speed):
-        # also true for NaN speeds, which the NaN flag below reports separately
-        if wp.isfinite(speed2):
-            wp.atomic_min(status, 1, step)
-    if not (wp.isfinite(x_new) and wp.isfinite(new_v)):
-        wp.atomic_min(status, 2, step)
-    if clamp_particles != 0:
-        lo = origin + wp.vec3(1.0 * dx)
-        hi = origin + wp.vec3(float(nx) - 2.0, float(ny) - 2.0, float(nz) - 2.0) * dx
-        x_new = wp.vec3(wp.clamp(x_new[0], lo[0], hi[0]), wp.clamp(x_new[1], lo[1], hi[1]), wp.clamp(x_new[2], lo[2], hi[2]))
-    elif not inside((x_new - origin) * inv_dx, nx, ny, nz):
-        wp.atomic_min(status, 0, step + 1)
-    x_out[p] = x_new
-    v_out[p] = new_v
-    C_out[p] = new_C
+def make_g2p_kernel(deterministic: bool = False) -> "wp.Kernel":
+    """G2P (shared by all materials); a separate module per determinism setting."""
+    return _G2P[bool(deterministic)]
+
+
+def _make_g2p(deterministic: bool):
+    @wp.kernel(module="unique", module_options=_options(deterministic))
+    def g2p(
+        x: wp.array(dtype=wp.vec3),
+        grid_v: wp.array3d(dtype=wp.vec3),
+        x_out: wp.array(dtype=wp.vec3),
+        v_out: wp.array(dtype=wp.vec3),
+        C_out: wp.array(dtype=wp.mat33),
+        origin: wp.vec3,
+        dx: float,
+        dt: float,
+        cfl_speed: float,
+        clamp_particles: int,
+        status: wp.array(dtype=wp.int32),
+        step: int,
+    ):
+        """Grid-to-particle transfer: velocity, APIC matrix C = 4/dx^2 sum w v (x_i - x_p)^T, x += dt v."""
+        p = wp.tid()
+        nx = grid_v.shape[0]
+        ny = grid_v.shape[1]
+        nz = grid_v.shape[2]
+        inv_dx = 1.0 / dx
+        X = (x[p] - origin) * inv_dx
+        base = stencil_base(X, nx, ny, nz)
+        fx = X - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        w = bspline_weights(fx)
+        new_v = wp.vec3(0.0)
+        new_C = wp.mat33(0.0)
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    dpos = wp.vec3(float(i), float(j), float(k)) - fx
+                    weight = w[i, 0] * w[j, 1] * w[k, 2]
+                    gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
+                    new_v = new_v + weight * gv
+                    new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
+        x_new = x[p] + dt * new_v
+        speed2 = wp.dot(new_v, new_v)
+        if not (speed2 <= cfl_speed * cfl_speed):
+            # also true for NaN speeds, which the NaN flag below reports separately
+            if wp.isfinite(speed2):
+                wp.atomic_min(status, 1, step)
+        if not (wp.isfinite(x_new) and wp.isfinite(new_v)):
+            wp.atomic_min(status, 2, step)
+        if clamp_particles != 0:
+            lo = origin + wp.vec3(1.0 * dx)
+            hi = origin + wp.vec3(float(nx) - 2.0, float(ny) - 2.0, float(nz) - 2.0) * dx
+            x_new = wp.vec3(wp.clamp(x_new[0], lo[0], hi[0]), wp.clamp(x_new[1], lo[1], hi[1]), wp.clamp(x_new[2], lo[2], hi[2]))
+        elif not inside((x_new - origin) * inv_dx, nx, ny, nz):
+            wp.atomic_min(status, 0, step + 1)
+        x_out[p] = x_new
+        v_out[p] = new_v
+        C_out[p] = new_C
+
+    return g2p
+
+
+_G2P = {False: _make_g2p(False), True: _make_g2p(True)}
 
 
 @wp.kernel
@@ -305,6 +323,13 @@ def store_frame(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), frame: i
     p = wp.tid()
     xs[frame, p] = x[p]
     vs[frame, p] = v[p]
+
+
+@wp.kernel
+def accumulate_vec3(dst: wp.array(dtype=wp.vec3), src: wp.array(dtype=wp.vec3)):
+    """dst += src (adjoint seeding on the simulator's stream)."""
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]
 
 
 @wp.kernel

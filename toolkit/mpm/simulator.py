@@ -36,8 +36,8 @@ from toolkit.mpm.kernels import (
     NO_FLAG,
     compose_effects,
     advect_tracers,
-    g2p,
     init_state,
+    make_g2p_kernel,
     make_grid_update_kernel,
     make_p2g_kernel,
     store_frame,
@@ -176,6 +176,8 @@ class MPMSimulator:
         self.device = str(wp.get_device(device))
         self._grid: Optional[GridSpec] = None
         self._buffers: dict = {}
+        # captured substep chains; they reference the buffers above, so any reallocation clears them
+        self._graphs: dict = {}
         offsets = np.cumsum([0] + [len(e.params) for e in self.effects]).tolist()
         self._effect_offsets = offsets[:-1]
         self.n_effect_params = offsets[-1]
@@ -209,11 +211,32 @@ class MPMSimulator:
             out[e.name] = {p.name: vals[off + i] for i, p in enumerate(e.params)}
         return out
 
+    @contextlib.contextmanager
     def stream(self):
-        """Context in which Warp launches go to torch's current CUDA stream (no-op on CPU)."""
-        if self.device.startswith("cuda"):
-            return wp.ScopedStream(wp.stream_from_torch(self._torch_device))
-        return contextlib.nullcontext()
+        """Context for the simulator's Warp work on CUDA (no-op on CPU).
+
+        Work is ordered after everything already queued on torch's current stream, and torch's
+        stream waits for it on exit. Torch's legacy default stream cannot be captured into a
+        graph, so in that case Warp works on its own stream, synchronized with events.
+        """
+        if not self.device.startswith("cuda"):
+            yield
+            return
+        torch_stream = torch.cuda.current_stream(self._torch_device)
+        wp_torch_stream = wp.stream_from_torch(torch_stream)
+        if torch_stream.cuda_stream != 0:
+            with wp.ScopedStream(wp_torch_stream):
+                yield
+            return
+        if getattr(self, "_work_stream", None) is None:
+            self._work_stream = wp.Stream(self.device)
+        work = self._work_stream
+        work.wait_stream(wp_torch_stream)
+        try:
+            with wp.ScopedStream(work):
+                yield
+        finally:
+            wp_torch_stream.wait_stream(work)
 
     @property
     def _torch_device(self) -> torch.device:
@@ -289,6 +312,7 @@ class MPMSimulator:
         if spec != self._grid:
             self._grid = spec
             self._buffers = {}
+            self._graphs = {}
 
     @property
     def grid(self) -> Optional[GridSpec]:
@@ -308,13 +332,11 @@ class MPMSimulator:
         if key not in _KERNEL_CACHE:
             ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx)
             funcs = [e.build(off, ctx) for e, off in zip(self.effects, self._effect_offsets)]
-            p2g = make_p2g_kernel(self.material.warp_update())
-            if cfg.deterministic:
-                # P2G is the only kernel with float atomics; the option is local to its own module
-                p2g.module.options["deterministic"] = wp.DeterministicMode.RUN_TO_RUN
             _KERNEL_CACHE[key] = (
-                p2g,
-                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height, cfg.boundary, cfg.out_of_domain == "clamp"),
+                make_p2g_kernel(self.material.warp_update(), cfg.deterministic),
+                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height, cfg.boundary, cfg.out_of_domain == "clamp",
+                                        cfg.deterministic),
+                make_g2p_kernel(cfg.deterministic),
             )
         return _KERNEL_CACHE[key]
 
@@ -324,6 +346,7 @@ class MPMSimulator:
         key = ("pool", n, chunk)
         if key not in self._buffers:
             self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "pool"}
+            self._graphs = {}
             states = [_ParticleState(n, self.device, requires_grad=True) for _ in range(chunk + 1)]
             grids = [_Grid(self._grid.dims, self.device, requires_grad=True) for _ in range(chunk)]
             self._buffers[key] = (states, grids)
@@ -332,6 +355,7 @@ class MPMSimulator:
     def _pingpong(self, n: int):
         key = ("pingpong", n)
         if key not in self._buffers:
+            self._graphs = {}
             self._buffers[key] = (
                 _ParticleState(n, self.device),
                 _ParticleState(n, self.device),
@@ -339,11 +363,41 @@ class MPMSimulator:
             )
         return self._buffers[key]
 
+    def _persistent(self, key: tuple, make):
+        if key not in self._buffers:
+            self._graphs = {}
+            self._buffers[key] = make()
+        return self._buffers[key]
+
+    def _inputs(self, params: torch.Tensor, gravity: torch.Tensor, effect_params: torch.Tensor):
+        """Persistent Warp copies (with gradient buffers) of one call's inputs.
+
+        Captured graphs bake in array addresses, so the per-call torch tensors are copied into
+        simulator-owned arrays that every graph references.
+        """
+        shape = tuple(params.shape)
+        n_eff = int(effect_params.shape[0])
+        p, g, e = self._persistent(("inputs", shape, n_eff), lambda: (
+            wp.zeros(shape, dtype=float, device=self.device, requires_grad=True),
+            wp.zeros(1, dtype=wp.vec3, device=self.device, requires_grad=True),
+            wp.zeros(max(n_eff, 1), dtype=float, device=self.device, requires_grad=True),
+        ))
+        wp.copy(p, wp.from_torch(params.detach().contiguous(), dtype=wp.float32))
+        wp.copy(g, wp.from_torch(gravity.detach().reshape(1, 3).contiguous(), dtype=wp.vec3))
+        if n_eff:
+            wp.copy(e, wp.from_torch(effect_params.detach().contiguous(), dtype=wp.float32))
+        return p, g, e
+
+    def _status(self):
+        status = self._persistent(("status",), lambda: wp.zeros(4, dtype=wp.int32, device=self.device))
+        status.fill_(NO_FLAG)
+        return status
+
     # ------------------------------------------------------------------ substeps
     def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
                  gravity, effect_params, dt: float, step: int, status, tracers=None) -> None:
         """One substep s_in -> s_out; ``step`` is the frame-local substep index written to the flags."""
-        p2g, grid_update = self._kernels()
+        p2g, grid_update, g2p = self._kernels()
         cfg = self.config
         spec = self._grid
         origin = wp.vec3(*spec.origin)
@@ -586,7 +640,8 @@ class MPMSimulator:
 
         if graphs is None:
             return chain()
-        key = (first, length, id(a), None if tracers is None else id(tracers[0]))
+        key = ("forward", first, length, id(a), id(grid), id(args[0]), args[1], args[4],
+               None if tracers is None else id(tracers[0]))
         if key not in graphs:
             tr_before = None if tracers is None else list(tracers)
             with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
@@ -606,10 +661,10 @@ class MPMSimulator:
         dt = self.config.frame_dt / substeps
         dev = self._torch_device
         a, b, grid = self._pingpong(n)
-        status = wp.full(4, NO_FLAG, dtype=wp.int32, device=self.device)
+        status = self._status()
         per_particle = int(params.shape[0] == n and n > 1)
-        args = (self._wp(params, wp.float32), per_particle, self._wp(gravity.reshape(1, 3), wp.vec3),
-                self._wp(effect_params, wp.float32), dt)
+        wp_params, wp_gravity, wp_effects = self._inputs(params, gravity, effect_params)
+        args = (wp_params, per_particle, wp_gravity, wp_effects, dt)
         wp.launch(init_state, dim=n, inputs=[self._wp(x0, wp.vec3), self._wp(v0, wp.vec3), a.x, a.v, a.C, a.F, a.J], device=self.device)
 
         positions = torch.empty((n_frames + 1, n, 3), dtype=torch.float32, device=dev)
@@ -621,15 +676,17 @@ class MPMSimulator:
         if return_deformation:
             Fs = torch.empty((n_frames + 1, n, 3, 3), dtype=torch.float32, device=dev)
             Js = torch.empty((n_frames + 1, n), dtype=torch.float32, device=dev)
-            Fs[0] = wp.to_torch(a.F)
-            Js[0] = wp.to_torch(a.J)
+            wp.copy(wp.from_torch(Fs[0], dtype=wp.mat33), a.F)
+            wp.copy(wp.from_torch(Js[0]), a.J)
         tr_pair = tr_out = None
         if tracers is not None:
             m = tracers.shape[0]
-            tr_pair = [wp.clone(wp.from_torch(tracers, dtype=wp.vec3)), wp.zeros(m, dtype=wp.vec3, device=self.device)]
+            tr_pair = list(self._persistent(("tracers", m), lambda: (
+                wp.zeros(m, dtype=wp.vec3, device=self.device), wp.zeros(m, dtype=wp.vec3, device=self.device))))
+            wp.copy(tr_pair[0], wp.from_torch(tracers, dtype=wp.vec3))
             tr_out = torch.empty((n_frames + 1, m, 3), dtype=torch.float32, device=dev)
-            tr_out[0] = tracers
-        graphs = {} if self.use_graphs() else None
+            wp.copy(wp.from_torch(tr_out[0], dtype=wp.vec3), tr_pair[0])
+        graphs = self._graphs if self.use_graphs() else None
         units = self.chunks(n_frames, substeps) if keep_checkpoints else [(f, f * substeps, substeps) for f in range(n_frames)]
         checkpoints: list[_ParticleState] = []
         for frame, first, length in units:
@@ -642,11 +699,12 @@ class MPMSimulator:
             if local + length < substeps:
                 continue
             wp.launch(store_frame, dim=n, inputs=[a.x, a.v, frame + 1, wp_pos, wp_vel], device=self.device)
+            # copies stay on the simulator's stream (see stream())
             if tr_pair is not None:
-                tr_out[frame + 1] = wp.to_torch(tr_pair[0])
+                wp.copy(wp.from_torch(tr_out[frame + 1], dtype=wp.vec3), tr_pair[0])
             if return_deformation:
-                Fs[frame + 1] = wp.to_torch(a.F)
-                Js[frame + 1] = wp.to_torch(a.J)
+                wp.copy(wp.from_torch(Fs[frame + 1], dtype=wp.mat33), a.F)
+                wp.copy(wp.from_torch(Js[frame + 1]), a.J)
             self._check_status(status, frame, substeps, a)
         out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
         if return_deformation:
