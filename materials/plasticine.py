@@ -54,8 +54,8 @@ class Plasticine(Material):
     uses_svd = True
     option_defaults = {"yield_rule": "gic"}
 
-    def __init__(self, **options):
-        super().__init__(**options)
+    def __init__(self, yield_rule: str = "gic"):
+        super().__init__(yield_rule=yield_rule)
         if self.options["yield_rule"] not in ("gic", "pacnerf"):
             raise MaterialError(f"plasticine yield_rule must be 'gic' or 'pacnerf', got {self.options['yield_rule']!r}")
 

@@ -17,6 +17,7 @@ __all__ = ["main", "COMMANDS"]
 #: command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("toolkit.commands.demo", "run the main job on an embedded synthetic scene (no download)"),
+    "fit": ("toolkit.commands.fit", "run the physics stages from a YAML config (LightningCLI; see `projo4d fit --help`)"),
     "generate": ("toolkit.synthetic.commands", "write synthetic scenes (PAC-NeRF layout) with honest ground truth"),
     "materials": ("toolkit.commands.info", "list materials, renderers, strategies and effects with their parameters"),
 }
@@ -25,6 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``projo4d`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "fit":  # LightningCLI parses its own arguments
+        from toolkit.commands import fit
+
+        return fit.main(argv[1:])
     parser = _build_parser_for(argv)
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

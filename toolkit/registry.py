@@ -50,8 +50,10 @@ class Registry(Generic[T]):
             imported on the first lookup, so importing the registry itself stays cheap.
     """
 
-    def __init__(self, kind: str, entry_point_group: str | None = None, builtin_modules: tuple[str, ...] = ()):
+    def __init__(self, kind: str, entry_point_group: str | None = None, builtin_modules: tuple[str, ...] = (),
+                 plural: str | None = None):
         self.kind = kind
+        self.plural = plural or (kind[:-1] + "ies" if kind.endswith("y") else kind + "s")
         self.entry_point_group = entry_point_group
         self.builtin_modules = tuple(builtin_modules)
         self._entries: dict[str, T] = {}
@@ -127,7 +129,7 @@ class Registry(Generic[T]):
         close = difflib.get_close_matches(str(name), known, n=3, cutoff=0.5)
         hint = f" Did you mean {', '.join(repr(c) for c in close)}?" if close else ""
         raise UnknownNameError(
-            f"unknown {self.kind} {name!r}.{hint} Known {self.kind}s: {', '.join(known) or '(none)'}."
+            f"unknown {self.kind} {name!r}.{hint} Known {self.plural}: {', '.join(known) or '(none)'}."
         )
 
     def names(self) -> list[str]:

@@ -1,0 +1,480 @@
+"""The inverse-physics LightningModule: Gaussians + particles + v0 + material, driven by a strategy.
+
+Parameter groups (DESIGN section 6) and what they hold here:
+
+* ``X``: offsets of the simulation particles' initial positions (N, 3) and of the Gaussians'
+  frame-0 means (G, 3), metres;
+* ``A``: Gaussian appearance: colours (or SH), opacity logits, log-scales, quaternions;
+* ``S``: the initial velocity v0 (3,) m/s (and gravity when ``optimize_gravity``);
+* ``M``: the material's optimized parameters in their raw space (log10 E, tanh-bounded nu, ...)
+  and the parameters of any added effects.
+
+Each iteration the strategy names the active groups, the frame window and the batch; the module
+samples cameras and frames (deterministically from the seed and the iteration, so a resumed run
+sees the same batches), simulates up to the last sampled frame, moves the Gaussians with the
+particles (:mod:`toolkit.physics.embedding`), renders the sampled cameras and minimizes
+
+    lambda_img * sum_cameras L_img + lambda_geo * chamfer(simulated surface, stage-0 surface),
+
+averaged over the sampled frames, with ``L_img = (1 - 0.2) L1 + 0.2 (1 - SSIM)`` on the masked
+image (object on black) and ``lambda_img = 1 / |C|``. One Adam optimizer per group is created
+once; only the active groups step. Learning rates follow a cosine decay with 10 % warm-up over
+the iterations in which the group is active, a pure function of the iteration, so resuming needs
+no scheduler state. The module keeps its own iteration counter (``curriculum_step``, saved in
+checkpoints): under manual optimization Lightning's ``global_step`` counts optimizer steps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch import nn
+
+from materials import Material, get_material
+from renderers import RENDERERS, Gaussians, get_renderer
+from strategies import Strategy, get_strategy
+from strategies.base import GROUPS
+from toolkit.metrics.geometry import chamfer_loss
+from toolkit.metrics.image import ssim_torch
+from toolkit.mpm import MPMSimulator, SimConfig
+from toolkit.mpm.config import SimulationError
+from toolkit.physics.embedding import carry, embed
+from toolkit.physics.inputs import PhysicsInput
+
+__all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
+
+log = logging.getLogger(__name__)
+
+#: Adam learning rates of the non-material parameters (material ones come from MaterialParam.lr).
+DEFAULT_LEARNING_RATES = {
+    "positions": 2e-4,  # m, X (3DGS position lr at a ~1 m scene)
+    "colors": 2.5e-3,
+    "opacity": 0.05,
+    "scales": 5e-3,
+    "rotations": 1e-3,
+    "velocity": 2e-2,  # m/s (DESIGN: 1e-2 .. 5e-2)
+    "gravity": 1e-2,
+}
+
+
+def cosine_with_warmup(k: int, total: int, warmup_fraction: float = 0.1, floor: float = 0.01) -> float:
+    """LR multiplier at the k-th active iteration of ``total``: linear warm-up, cosine decay to ``floor``."""
+    if total <= 1:
+        return 1.0
+    warm = max(1, int(round(warmup_fraction * total)))
+    if k < warm:
+        return (k + 1) / warm
+    t = (k - warm) / max(1, total - warm)
+    return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
+
+
+class _StepStream(torch.utils.data.IterableDataset):
+    """An endless stream of placeholders: the module samples its own batches from the strategy."""
+
+    def __iter__(self):
+        while True:
+            yield 0
+
+
+class InversePhysicsModule(pl.LightningModule):
+    """Fit positions, appearance, initial velocity and material to multi-view video.
+
+    Args:
+        input_path: a ``physics_input.pt`` written after stage 0 (a :class:`PhysicsInput` object is
+            accepted too, from Python).
+        material: registered material name or a :class:`~materials.Material`.
+        material_options: options of the material (e.g. ``{"yield_rule": "pacnerf"}``).
+        initial_params: starting guesses (physical units); default the material's defaults.
+        optimize_params: material parameters to optimize (default: those the material marks).
+        effects: effects to add, ``{name: {param: initial value}}``; their parameters join ``M``.
+        curriculum: a strategy name (``progressive``, ``sequential``, ``joint``, ``cyclic``), a
+            schedule string (``"XAS:100@3,XASM:150"``) or a :class:`~strategies.Strategy`. (Not
+            Lightning's ``Trainer(strategy=...)``, which is about distributed training.)
+        renderer: registered renderer name, or ``"auto"`` (``warp`` if registered, else ``torch``).
+        sim: simulator settings (``SimConfig``); ``frame_dt`` is taken from the input's times.
+        v0_init: initial guess of v0 (m/s), default zero.
+        optimize_gravity: put gravity in ``S`` too.
+        lambda_image: weight of the image term per camera; default ``1 / |C|``.
+        lambda_geometry: weight of the geometric term.
+        ssim_weight: lambda of ``(1 - lambda) L1 + lambda (1 - SSIM)``.
+        learning_rates: overrides of :data:`DEFAULT_LEARNING_RATES` and of material parameters'
+            rates (keys: ``positions``, ``colors``, ..., or a material parameter name).
+        warmup_fraction: warm-up part of each group's cosine schedule.
+        seed: seed of the batch sampling.
+        embedding_neighbours: particles each Gaussian follows.
+    """
+
+    def __init__(
+        self,
+        input_path: str,
+        material: Union[str, Material] = "neo_hookean",
+        material_options: Optional[dict] = None,
+        initial_params: Optional[dict] = None,
+        optimize_params: Optional[list[str]] = None,
+        effects: Optional[dict[str, dict]] = None,
+        curriculum: Union[str, Strategy] = "progressive",
+        renderer: str = "auto",
+        sim: Optional[SimConfig] = None,
+        v0_init: Optional[list[float]] = None,
+        optimize_gravity: bool = False,
+        lambda_image: Optional[float] = None,
+        lambda_geometry: float = 1.0,
+        ssim_weight: float = 0.2,
+        learning_rates: Optional[dict[str, float]] = None,
+        warmup_fraction: float = 0.1,
+        seed: int = 0,
+        embedding_neighbours: int = 8,
+    ):
+        super().__init__()
+        self.automatic_optimization = False
+        inp = input_path if isinstance(input_path, PhysicsInput) else PhysicsInput.load(input_path)
+        # checkpoints hold plain data only (Lightning loads them with weights_only=True)
+        self.save_hyperparameters(ignore=["input_path", "material", "curriculum", "sim"])
+        self.input = inp
+        self.material = get_material(material, **(material_options or {})) if isinstance(material, str) else material
+        self.curriculum = get_strategy(curriculum)
+        self.stages = self.curriculum.stages(self.material.registry_name or None)
+        self.total_iterations = self.curriculum.total_iterations(self.material.registry_name or None)
+        self.renderer_name = ("warp" if "warp" in RENDERERS else "torch") if renderer == "auto" else renderer
+        self.renderer = get_renderer(self.renderer_name)
+        cfg = sim if sim is not None else SimConfig(auto_dt_halving=True)
+        if isinstance(cfg, dict):
+            cfg = SimConfig(**cfg)
+        cfg.frame_dt = inp.frame_dt
+        self.sim_config = cfg
+        self.hparams.update(
+            input_path=None if isinstance(input_path, PhysicsInput) else str(input_path),
+            material=self.material.registry_name or type(self.material).__name__,
+            material_options=dict(self.material.options),
+            curriculum=self.curriculum.schedule_string(self.material.registry_name or None),
+            curriculum_name=self.curriculum.name,
+            sim=cfg.to_dict(),
+        )
+        self.effect_init = dict(effects or {})
+        self.optimize_gravity = optimize_gravity
+        self.lambda_image = lambda_image if lambda_image is not None else 1.0 / len(inp.train_cameras)
+        self.lambda_geometry = lambda_geometry
+        self.ssim_weight = ssim_weight
+        self.lrs = {**DEFAULT_LEARNING_RATES, **(learning_rates or {})}
+        self.warmup_fraction = warmup_fraction
+        self.seed = seed
+        self.curriculum_step = 0
+        self._sim: Optional[MPMSimulator] = None
+        self._restored_grid: Optional[dict] = None
+        self._cached_positions: Optional[torch.Tensor] = None
+        self.history: list[dict] = []
+
+        # ---------------------------------------------------------- X: positions
+        self.register_buffer("particles0", inp.particles.float().clone())
+        self.register_buffer("gaussian_means0", inp.gaussians.means.float().clone())
+        self.particle_offset = nn.Parameter(torch.zeros_like(self.particles0))
+        self.gaussian_offset = nn.Parameter(torch.zeros_like(self.gaussian_means0))
+        index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours)
+        self.register_buffer("embed_index", index)
+        self.register_buffer("embed_weight", weight)
+        # simulated particles compared with the stage-0 surface: those near it at frame 0
+        self.register_buffer("surface_index", self._surface_particles(inp))
+        # ---------------------------------------------------------- A: appearance
+        g = inp.gaussians
+        self.log_scales = nn.Parameter(g.log_scales.float().clone())
+        self.quats = nn.Parameter(g.quats.float().clone())
+        self.opacity_logits = nn.Parameter(g.opacity_logits.float().clone())
+        if g.sh is not None:
+            self.sh = nn.Parameter(g.sh.float().clone())
+            self.colors = None
+        else:
+            self.colors = nn.Parameter(g.colors.float().clone())
+            self.sh = None
+        # ---------------------------------------------------------- S: initial state
+        self.v0 = nn.Parameter(torch.tensor(v0_init if v0_init is not None else [0.0, 0.0, 0.0], dtype=torch.float32))
+        gravity = torch.tensor(list(cfg.gravity), dtype=torch.float32)
+        if optimize_gravity:
+            self.gravity = nn.Parameter(gravity)
+        else:
+            self.register_buffer("gravity", gravity)
+        # ---------------------------------------------------------- M: material and effects
+        start = self.material.complete(initial_params)
+        self.material.validate(start)
+        names = self.material.param_names
+        wanted = optimize_params if optimize_params is not None else [p.name for p in self.material.params if p.optimize]
+        unknown = set(wanted) - set(names)
+        if unknown:
+            raise ValueError(f"optimize_params {sorted(unknown)} are not parameters of {self.material.name!r} ({names})")
+        self.optimized_material = [n for n in names if n in wanted]
+        raw = self.material.to_raw(start)
+        self.material_raw = nn.ParameterDict({n: nn.Parameter(raw[i].clone()) for i, n in enumerate(names) if n in wanted})
+        self.register_buffer("material_raw_fixed", raw.clone())
+        probe = MPMSimulator(self.material, cfg, effects=list(self.effect_init), device="cpu")
+        self.effect_names = probe.effect_param_names
+        self.effect_params = nn.Parameter(probe.pack_effects(self.effect_init).float())
+        self._effect_specs = [(e, p) for e in probe.effects for p in e.params]
+
+        # the images come from the input file, not from checkpoints
+        self.register_buffer("images", inp.images, persistent=False)
+        self.register_buffer("masks", inp.masks, persistent=False)
+        self._ground_truth = inp.ground_truth or {}
+
+    # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _surface_particles(inp: PhysicsInput) -> torch.Tensor:
+        from scipy.spatial import cKDTree
+
+        parts = inp.particles.detach().cpu().numpy()
+        surf = inp.surfaces[0].detach().cpu().numpy()
+        if len(surf) == 0:
+            return torch.arange(len(parts))
+        spacing = float(inp.particle_volume) ** (1 / 3)
+        d, _ = cKDTree(surf).query(parts, k=1)
+        idx = np.nonzero(d <= 1.5 * spacing)[0]
+        if len(idx) < 8:
+            idx = np.argsort(d)[: max(8, len(parts) // 4)]
+        return torch.as_tensor(np.sort(idx), dtype=torch.int64)
+
+    @property
+    def simulator(self) -> MPMSimulator:
+        if self._sim is None or self._sim.device != str(_warp_device(self.device)):
+            self._sim = MPMSimulator(self.material, self.sim_config, effects=list(self.effect_init), device=_warp_device(self.device))
+            if self._restored_grid is not None:
+                # the grid origin enters (x - origin) / dx: a resumed run must use the same one
+                from toolkit.mpm.simulator import GridSpec
+
+                g = self._restored_grid
+                self._sim.set_grid(GridSpec(tuple(g["origin"]), tuple(g["dims"]), float(g["dx"])))
+        return self._sim
+
+    def material_params(self) -> torch.Tensor:
+        """(P,) physical material parameters, differentiable for the optimized ones."""
+        raws = [self.material_raw[n] if n in self.material_raw else self.material_raw_fixed[i]
+                for i, n in enumerate(self.material.param_names)]
+        return self.material.to_physical(torch.stack(raws))
+
+    def estimate(self) -> dict:
+        """Current estimate: material parameters (physical), v0, gravity, effects."""
+        with torch.no_grad():
+            params = dict(zip(self.material.param_names, self.material_params().cpu().tolist()))
+            eff = self.simulator.unpack_effects(self.effect_params) if self.effect_names else {}
+        return {"material": self.material.registry_name, "params": params, "v0": self.v0.detach().cpu().tolist(),
+                "gravity": self.gravity.detach().cpu().tolist(), "effects": eff}
+
+    def gaussians_at(self, positions: torch.Tensor, x0: torch.Tensor, appearance_grad: bool = True) -> list[Gaussians]:
+        """Gaussians for each frame of ``positions`` (F, N, 3) simulated from ``x0``."""
+        means0 = self.gaussian_means0 + self.gaussian_offset
+        means = carry(means0, positions, x0, self.embed_index, self.embed_weight)
+        A = (lambda t: t) if appearance_grad else (lambda t: None if t is None else t.detach())  # noqa: E731
+        return [Gaussians(means=m, log_scales=A(self.log_scales), quats=A(self.quats), opacity_logits=A(self.opacity_logits),
+                          colors=A(self.colors), sh=A(self.sh)) for m in means]
+
+    def _sample(self, stage, step: int) -> tuple[list[int], list[int]]:
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        cams = list(self.input.train_cameras)
+        if stage.cameras_per_step and stage.cameras_per_step < len(cams):
+            cams = [cams[i] for i in sorted(torch.randperm(len(cams), generator=gen)[: stage.cameras_per_step].tolist())]
+        window = min(stage.frames or self.input.n_train, self.input.n_train)
+        frames = list(range(window))
+        if stage.frames_per_step and stage.frames_per_step < window:
+            frames = sorted(torch.randperm(window, generator=gen)[: stage.frames_per_step].tolist())
+        return cams, frames
+
+    def _lr_factor(self, group: str, step: int) -> float:
+        key = self.material.registry_name or None
+        done = self.curriculum.group_progress(group, step, key)
+        total = self.curriculum.group_active_steps(group, key)
+        return cosine_with_warmup(done, total, self.warmup_fraction)
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def configure_optimizers(self):
+        groups = {
+            "X": [{"params": [self.particle_offset, self.gaussian_offset], "lr": self.lrs["positions"], "name": "positions"}],
+            "A": [
+                {"params": [self.colors if self.colors is not None else self.sh], "lr": self.lrs["colors"], "name": "colors"},
+                {"params": [self.opacity_logits], "lr": self.lrs["opacity"], "name": "opacity"},
+                {"params": [self.log_scales], "lr": self.lrs["scales"], "name": "scales"},
+                {"params": [self.quats], "lr": self.lrs["rotations"], "name": "rotations"},
+            ],
+            "S": [{"params": [self.v0], "lr": self.lrs["velocity"], "name": "velocity"}]
+            + ([{"params": [self.gravity], "lr": self.lrs["gravity"], "name": "gravity"}] if self.optimize_gravity else []),
+            "M": [{"params": [self.material_raw[n]], "lr": self.lrs.get(n, self.material.param(n).lr), "name": n}
+                  for n in self.optimized_material]
+            + ([{"params": [self.effect_params], "lr": self.lrs.get("effects", 0.02), "name": "effects"}] if self.effect_names else []),
+        }
+        opts = []
+        for g in GROUPS:
+            if not groups[g]:  # a group with nothing to optimize (e.g. all material parameters fixed)
+                groups[g] = [{"params": [nn.Parameter(torch.zeros(1, device=self.v0.device))], "lr": 0.0, "name": "empty"}]
+            for pg in groups[g]:
+                pg["base_lr"] = pg["lr"]
+            opts.append(torch.optim.Adam(groups[g], eps=1e-15))
+        return opts
+
+    def train_dataloader(self):
+        return torch.utils.data.DataLoader(_StepStream(), batch_size=None)
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["projo4d"] = {
+            "curriculum_step": self.curriculum_step,
+            "curriculum": self.curriculum.describe(self.material.registry_name or None),
+            "history": self.history,
+            "grid": None if self._sim is None or self._sim.grid is None else self._sim.grid.__dict__,
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        state = checkpoint.get("projo4d", {})
+        self.curriculum_step = int(state.get("curriculum_step", 0))
+        self.history = list(state.get("history", []))
+        self._restored_grid = state.get("grid")
+        self._sim = None
+        saved = state.get("curriculum")
+        if saved is not None and saved != self.curriculum.describe(self.material.registry_name or None):
+            log.warning("the checkpoint was written with a different curriculum; continuing with the current one")
+
+    def training_step(self, batch, batch_idx):
+        if self.curriculum_step >= self.total_iterations:
+            self.trainer.should_stop = True
+            return None
+        step = self.curriculum_step
+        at = self.curriculum.stage_at(step, self.material.registry_name or None)
+        stage = at.stage
+        cams, frames = self._sample(stage, step)
+        opts = self.optimizers()
+        for o in opts:
+            o.zero_grad(set_to_none=True)
+        losses = self.losses(stage, cams, frames)
+        total = losses["total"]
+        if total.requires_grad:
+            self.manual_backward(total)
+            for gi, g in enumerate(GROUPS):
+                if g not in stage.groups:
+                    continue
+                factor = self._lr_factor(g, step) * stage.lr_scale.get(g, 1.0)
+                for pg in opts[gi].param_groups:
+                    pg["lr"] = pg["base_lr"] * factor
+                opts[gi].step()
+        if stage.groups & {"X", "S", "M"}:
+            self._cached_positions = None
+        self.curriculum_step += 1
+        self._log_step(at, losses)
+        return total.detach()
+
+    # ------------------------------------------------------------------ losses
+    def simulate(self, n_frames: int, groups: frozenset = frozenset("XSM")):
+        """Simulate ``n_frames`` frames from the current state; gradients only for ``groups``."""
+        x0 = self.particles0 + (self.particle_offset if "X" in groups else self.particle_offset.detach())
+        v0 = self.v0 if "S" in groups else self.v0.detach()
+        gravity = self.gravity if ("S" in groups and self.optimize_gravity) else self.gravity.detach()
+        params = self.material_params() if "M" in groups else self.material_params().detach()
+        effects = self.effect_params if "M" in groups else self.effect_params.detach()
+        out = self.simulator.simulate(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=n_frames)
+        return x0, out.positions
+
+    def losses(self, stage, cams: Sequence[int], frames: Sequence[int]) -> dict[str, torch.Tensor]:
+        """Loss terms of one iteration (differentiable with respect to the stage's groups)."""
+        groups = stage.groups
+        n_sim = max(frames)
+        if groups & {"X", "S", "M"} or self._cached_positions is None or self._cached_positions[1].shape[0] <= n_sim:
+            x0, positions = self.simulate(max(n_sim, 0), groups)
+            if not groups & {"X", "S", "M"}:
+                self._cached_positions = (x0.detach(), positions.detach())
+        else:
+            x0, positions = self._cached_positions
+        out: dict[str, torch.Tensor] = {}
+        zero = torch.zeros((), device=positions.device)
+        total = zero
+        if "image" in stage.losses:
+            gauss = self.gaussians_at(positions[frames], x0, appearance_grad="A" in groups)
+            if "X" not in groups:
+                gauss = [g.replace(means=g.means.detach()) if not (groups & {"S", "M"}) else g for g in gauss]
+            cam_batch = self.input.cameras[cams].to(positions.device)
+            img_loss = zero
+            for f, g in zip(frames, gauss):
+                render = self.renderer(g, cam_batch)
+                gt = self.images[cams, f].float() / 255.0
+                mask = self.masks[cams, f].float().unsqueeze(-1) / 255.0
+                gt = gt * mask
+                l1 = (render.rgb - gt).abs().mean(dim=(1, 2, 3))
+                ssim = ssim_torch(render.rgb, gt, reduction="none").reshape(len(cams), -1).mean(1)
+                per_cam = (1 - self.ssim_weight) * l1 + self.ssim_weight * (1 - ssim)
+                img_loss = img_loss + self.lambda_image * per_cam.sum()
+            out["image"] = img_loss / len(frames)
+            total = total + out["image"]
+        if "geometry" in stage.losses and self.lambda_geometry > 0:
+            geo = zero
+            for f in frames:
+                target = self.input.surfaces[f].to(positions.device)
+                if len(target):
+                    geo = geo + chamfer_loss(positions[f][self.surface_index], target)
+            out["geometry"] = self.lambda_geometry * geo / len(frames)
+            total = total + out["geometry"]
+        out["total"] = total
+        return out
+
+    def _log_step(self, at, losses: dict) -> None:
+        est = self.estimate()
+        rec: dict[str, Any] = {"step": self.curriculum_step, "stage": at.index, "stage_name": at.stage.name}
+        for k, v in losses.items():
+            rec[f"loss/{k}"] = float(v.detach())
+        for k, v in est["params"].items():
+            rec[f"param/{k}"] = v
+        for i, c in enumerate("xyz"):
+            rec[f"v0/{c}"] = est["v0"][i]
+        for name, vals in est["effects"].items():
+            for k, v in vals.items():
+                rec[f"effect/{name}.{k}"] = v
+        opts = self.optimizers()
+        for gi, g in enumerate(GROUPS):
+            rec[f"lr/{g}"] = opts[gi].param_groups[0]["lr"] if g in at.stage.groups else 0.0
+        rec.update(self.parameter_errors(est))
+        self.history.append(rec)
+        for k, v in rec.items():
+            if isinstance(v, (int, float)) and k != "step":
+                self.log(k, float(v), on_step=True, on_epoch=False, prog_bar=k in ("loss/total",), batch_size=1)
+
+    def parameter_errors(self, est: dict | None = None) -> dict[str, float]:
+        """Errors against the ground truth when it is known (for logging; never used by the fit)."""
+        gt = self._ground_truth
+        if not gt or not gt.get("params"):
+            return {}
+        from toolkit.metrics.parameters import parameter_errors
+
+        est = est or self.estimate()
+        pred = dict(est["params"])
+        truth = dict(gt["params"])
+        if gt.get("v0") is not None:
+            pred["v0"], truth["v0"] = est["v0"], gt["v0"]
+        errs = parameter_errors(pred, truth)
+        return {f"error/{k}": float(v) for k, v in errs.items() if isinstance(v, (int, float))}
+
+    # ------------------------------------------------------------------ prediction
+    @torch.no_grad()
+    def predict_trajectory(self, n_frames: Optional[int] = None) -> dict[str, torch.Tensor]:
+        """Simulate all frames (training and future) with the current estimate.
+
+        Returns:
+            ``positions`` (T, N, 3) particle positions and ``means`` (T, G, 3) Gaussian means.
+        """
+        n_frames = n_frames or self.input.n_frames
+        x0, positions = self.simulate(n_frames - 1, frozenset())
+        means = carry(self.gaussian_means0 + self.gaussian_offset, positions, x0, self.embed_index, self.embed_weight)
+        return {"positions": positions, "means": means}
+
+    @torch.no_grad()
+    def render_frames(self, means: torch.Tensor, cameras: Sequence[int]) -> torch.Tensor:
+        """(T, C, H, W, 3) renders of the Gaussians at ``means`` (T, G, 3) for ``cameras``."""
+        cams = self.input.cameras[list(cameras)].to(means.device)
+        out = []
+        for m in means:
+            g = Gaussians(means=m, log_scales=self.log_scales, quats=self.quats, opacity_logits=self.opacity_logits,
+                          colors=self.colors, sh=self.sh)
+            out.append(self.renderer(g, cams).rgb.clamp(0, 1))
+        return torch.stack(out)
+
+
+def _warp_device(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"cuda:{device.index or 0}"
+    return "cpu"
