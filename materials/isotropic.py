@@ -10,7 +10,7 @@ Differentiating through ``wp.svd3`` loses the shear part of the derivative where
 coincide (at rest every particle has F = I): the textbook SVD adjoint divides by
 ``sigma_i^2 - sigma_j^2``, and a guard such as ``d / (d^2 + eps)`` silently zeroes the term. We
 instead differentiate the whole isotropic map. In the frame of the singular vectors, with
-``P = U^T dF V``, the off-diagonal part of the differential is (i != j)
+``P = U^T dF V``, the off-diagonal part of the differential is (i != j)::
 
     (U^T dF_new V)_ij = 1/2 [(A + B) P_ij + (A - B) P_ji],   A = (g_i - g_j)/(s_i - s_j),
                                                               B = (g_i + g_j)/(s_i + s_j),

@@ -44,7 +44,7 @@ class NonNewtonian(Material):
     ``y / (1 + eta / (2 mu_hat dt))`` with ``mu_hat = mu sum(sigma^2) / 3`` (viscous return
     mapping) and the strain rebuilt from it. Kirchhoff stress ``tau = U diag(2 mu eps + lambda tr eps) U^T``.
 
-    Parameters (all log10): ``mu`` shear modulus-like viscosity (default 100), ``kappa`` bulk
+    Parameters (all log10): ``mu`` shear modulus (Pa, default 100), ``kappa`` bulk
     modulus (default 1e5), ``yield_stress`` tau_Y (Pa, default 10), ``plastic_viscosity`` eta
     (default 1).
     """

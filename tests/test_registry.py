@@ -53,6 +53,8 @@ def test_entry_point_plugin_is_loaded_lazily(tmp_path, monkeypatch):
     cls = reg.get("foam")
     assert issubclass(cls, Material) and cls.__name__ == "Foam"
     assert isinstance(cls(), Material)
+    # a subclass of a built-in is known by its own entry-point name, not its parent's
+    assert cls().name == "foam" and get_material("neo_hookean").name == "neo_hookean"
 
 
 def test_get_material_options_are_validated():

@@ -399,3 +399,17 @@ def test_cli_builds_the_spec_and_reports_bad_values(capsys, tmp_path):
     with pytest.raises(SystemExit):
         main(["generate", "suite", "--out", str(tmp_path), "--families", "gel"])
     assert "invalid choice: 'gel'" in capsys.readouterr().err
+
+
+def test_relative_output_folder_gives_valid_ground_truth_paths(tmp_path, monkeypatch):
+    """ground_truth.json must point at the PLY files whatever the working directory was."""
+    from toolkit.data import load_scene
+    from toolkit.synthetic import SceneSpec, generate_scene
+
+    monkeypatch.chdir(tmp_path)
+    spec = SceneSpec.preset("small", shape="sphere", shape_size={"radius": 0.05}, n_frames=2, n_train_frames=1, n_cameras=3,
+                           width=16, height=16, dx=0.04, substeps=20, supersample=1)
+    generate_scene(spec, "scenes/relative", progress=False)
+    scene = load_scene(tmp_path / "scenes" / "relative")
+    assert all(p.is_file() for p in scene.ground_truth.point_clouds)
+    assert len(scene.ground_truth.load_point_cloud(1)) > 0

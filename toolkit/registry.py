@@ -90,8 +90,8 @@ class Registry(Generic[T]):
 
         return decorator
 
-    def _load_plugins(self) -> None:
-        if self._plugins_loaded or self.entry_point_group is None:
+    def _load_plugins(self, force: bool = False) -> None:
+        if (self._plugins_loaded and not force) or self.entry_point_group is None:
             self._plugins_loaded = True
             return
         self._plugins_loaded = True
@@ -109,6 +109,11 @@ class Registry(Generic[T]):
                     stacklevel=2,
                 )
                 continue
+            if isinstance(obj, type) and not obj.__dict__.get("registry_name"):
+                try:  # a plugin class (possibly a subclass of a built-in) is known by its entry-point name
+                    obj.registry_name = ep.name  # type: ignore[attr-defined]
+                except (AttributeError, TypeError):
+                    pass
             self._entries.setdefault(ep.name, obj)
 
     def get(self, name: str) -> T:
@@ -122,7 +127,8 @@ class Registry(Generic[T]):
         self._load_builtins()
         if name in self._entries:
             return self._entries[name]
-        self._load_plugins()
+        # plugins installed after the first scan are found on a miss
+        self._load_plugins(force=True)
         if name in self._entries:
             return self._entries[name]
         known = sorted(self._entries)

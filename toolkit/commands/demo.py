@@ -95,7 +95,7 @@ def run_demo(out: Path, device: str = "auto", frames: int = 12, iterations: int 
             opt_v.step()
             if joint:
                 opt_e.step()
-            history.append({"iteration": it, "stage": 2 if joint else 1, "frames": n, "loss": float(loss),
+            history.append({"iteration": it, "stage": 2 if joint else 1, "frames": n, "loss": loss.item(),
                             "E": float(10.0 ** log_e.detach()), "v0": v0.detach().cpu().tolist()})
             progress.advance(task)
 

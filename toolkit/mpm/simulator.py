@@ -97,8 +97,9 @@ class SimulationResult:
 @dataclass
 class RolloutResult:
     """Forward-only output (torch, no gradients): like :class:`SimulationResult`, plus
-    ``F`` (T+1, N, 3, 3) deformation gradients and ``J`` (T+1, N) volume ratios when asked for,
-    and ``tracers`` (T+1, M, 3) positions of passive tracer points when given."""
+    ``F`` (T+1, N, 3, 3) (elastic) deformation gradients and ``J`` (T+1, N) the tracked volume ratio
+    when asked for (``J`` is tracked by fluids only and stays 1 for solids, whose volume ratio is
+    ``det F``), and ``tracers`` (T+1, M, 3) positions of passive tracer points when given."""
 
     positions: torch.Tensor
     velocities: torch.Tensor
@@ -455,7 +456,7 @@ class MPMSimulator:
             vmax = np.nanmax(v) if np.isfinite(v).any() else float("nan")
             raise CFLError(
                 f"CFL violation at {where}: a particle moved more than {self.config.cfl} dx in one substep (max speed "
-                f"now {vmax:.3g} m/s, limit {self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); "
+                f"at the end of that frame {vmax:.3g} m/s, limit {self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); "
                 "increase SimConfig.substeps or enable auto_dt_halving",
                 frame=s // substeps, substep=s,
             )

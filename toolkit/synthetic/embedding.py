@@ -32,7 +32,7 @@ class SurfaceEmbedding:
         rest_particles: (N, 3) particle positions at rest, metres.
         rest_vertices: (V, 3) surface vertex positions at rest, metres.
         k: neighbours per vertex (>= 4; capped at N). The default 24 reaches past the outer
-            particle layer, so the fit is well-posed in 3D (measured: sum |c_vj| <= 3.4 over the
+            particle layer, so the fit is well-posed in 3D (measured: ``sum |c_vj| <= 3.4`` over the
             built-in shapes, i.e. little amplification of particle noise).
         ridge: Tikhonov weight on the linear part of the fit, relative to the neighbourhood
             scale; only a guard against singular neighbourhoods (a large value shrinks the

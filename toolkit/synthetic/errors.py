@@ -1,4 +1,4 @@
-"""Errors of the synthetic scene generator (all are ``ValueError``s with a message saying what to fix)."""
+"""Errors of the synthetic scene generator (all are ``ValueError`` subclasses with a message saying what to fix)."""
 
 from __future__ import annotations
 

@@ -202,8 +202,9 @@ def generate_scene(spec: SceneSpec, out_dir: str | Path, *, progress: bool = Tru
                 write_png(data / image_name(c, f), renderer.render(cams[c]).rgba8())
                 bar.advance(task)
     write_json(root / "all_data.json", all_data_entries(cams, times))
+    # absolute paths: write_ground_truth stores them relative to the JSON's folder
     clouds = [
-        write_ply_points(root / "gt_points" / f"frame_{f:03d}.ply", truth.particles[f]) for f in range(spec.n_frames)
+        write_ply_points(root.resolve() / "gt_points" / f"frame_{f:03d}.ply", truth.particles[f]) for f in range(spec.n_frames)
     ]
     gt = GroundTruth(
         material=spec.material,

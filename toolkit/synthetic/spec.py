@@ -33,6 +33,8 @@ SIZE_PRESETS: dict[str, dict[str, Any]] = {
 class SceneSpec:
     """Everything that defines one synthetic scene (SI units; angles in degrees).
 
+    The truth-resolution defaults are finer than the fitting defaults (see the module docstring).
+
     Object:
         shape: registered shape name (:data:`toolkit.synthetic.shapes.SHAPES`); ignored when
             ``mesh_path`` is given.
@@ -68,7 +70,7 @@ class SceneSpec:
         supersample: ray samples per pixel side (2 = 2x2 anti-aliasing).
         ground_plane: render the ground (checker) into the images and plates.
 
-    Truth resolution (finer than any fit; see the module docstring):
+    Truth resolution:
         dx: grid spacing, metres.
         particle_spacing: lattice pitch of the particles, metres (``None``: ``dx / 2``).
         substeps: minimum substeps per frame (raised to what stability needs).
