@@ -16,8 +16,10 @@ __all__ = ["main", "COMMANDS"]
 
 #: command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    "discover": ("toolkit.discovery.commands", "find where a fitted run and the measurements disagree and name the missing effect"),
     "demo": ("toolkit.commands.demo", "run the main job on an embedded synthetic scene (no download)"),
     "fit": ("toolkit.commands.fit", "run the physics stages from a YAML config (LightningCLI; see `projo4d fit --help`)"),
+    "run": ("toolkit.commands.run", "the whole pipeline for one scene: stage 0, continuum, strategy, prediction, metrics, report"),
     "generate": ("toolkit.synthetic.commands", "write synthetic scenes (PAC-NeRF layout) with honest ground truth"),
     "materials": ("toolkit.commands.info", "list materials, renderers, strategies and effects with their parameters"),
 }

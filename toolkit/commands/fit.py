@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Sequence
+from typing import Optional, Sequence
 
 __all__ = ["configure", "run", "main"]
 
@@ -40,6 +40,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv = ["fit", *argv]
 
     class PhysicsCLI(LightningCLI):
+        def add_arguments_to_parser(self, parser) -> None:
+            # configs/ files carry a `run:` section for `projo4d run` (stage 0, cameras, split)
+            parser.add_argument("--run", type=Optional[dict], default=None, help="pipeline settings (used by `projo4d run`)")
+
         def before_fit(self) -> None:
             from pytorch_lightning.callbacks import ProgressBar
 

@@ -17,7 +17,7 @@ import torch
 from renderers.base import Gaussians
 from toolkit.cameras import Cameras
 
-__all__ = ["PhysicsInput"]
+__all__ = ["PhysicsInput", "load_all_images"]
 
 _FORMAT = "projo4d-physics-input"
 
@@ -150,3 +150,30 @@ class PhysicsInput:
             ground_truth=d.get("ground_truth"),
             meta=d.get("meta", {}),
         )
+
+
+def load_all_images(scene, downscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every camera and frame of a :class:`~toolkit.data.MultiViewScene` as uint8 tensors.
+
+    Args:
+        scene: the scene.
+        downscale: integer factor; images are box-filtered (cameras must be scaled to match).
+
+    Returns:
+        ``images`` (C, T, H, W, 3) and ``masks`` (C, T, H, W), uint8 (masks: 255 = object).
+    """
+    imgs, masks = [], []
+    for c in range(scene.n_cameras):
+        ci, cm = [], []
+        for f in range(scene.n_frames):
+            img = scene.load_image(c, f)
+            m = scene.load_mask(c, f)
+            if downscale > 1:
+                h, w = img.shape[0] // downscale * downscale, img.shape[1] // downscale * downscale
+                img = img[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale, 3).mean((1, 3))
+                m = m[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale).mean((1, 3))
+            ci.append(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+            cm.append(np.round(np.clip(m, 0, 1) * 255).astype(np.uint8))
+        imgs.append(np.stack(ci))
+        masks.append(np.stack(cm))
+    return torch.from_numpy(np.stack(imgs)), torch.from_numpy(np.stack(masks))

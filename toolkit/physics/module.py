@@ -147,6 +147,7 @@ class InversePhysicsModule(pl.LightningModule):
         if isinstance(cfg, dict):
             cfg = SimConfig(**cfg)
         cfg.frame_dt = inp.frame_dt
+        cfg.particle_volume = float(inp.particle_volume)
         self.sim_config = cfg
         self.hparams.update(
             input_path=None if isinstance(input_path, PhysicsInput) else str(input_path),

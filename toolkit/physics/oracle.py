@@ -17,9 +17,9 @@ import torch
 from renderers.base import Gaussians
 from toolkit.data import load_scene
 from toolkit.data.datamodule import resolve_cameras
-from toolkit.physics.inputs import PhysicsInput
+from toolkit.physics.inputs import PhysicsInput, load_all_images
 
-__all__ = ["oracle_input", "voxel_downsample", "load_images"]
+__all__ = ["oracle_input", "voxel_downsample"]
 
 
 def voxel_downsample(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -29,25 +29,6 @@ def voxel_downsample(points: np.ndarray, spacing: float) -> np.ndarray:
     sums = np.zeros((len(counts), 3))
     np.add.at(sums, inverse.reshape(-1), points)
     return (sums / counts[:, None]).astype(np.float32)
-
-
-def load_images(scene, downscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
-    """All cameras and frames as uint8 tensors ``(C, T, H, W, 3)`` and masks ``(C, T, H, W)``."""
-    imgs, masks = [], []
-    for c in range(scene.n_cameras):
-        ci, cm = [], []
-        for f in range(scene.n_frames):
-            img = scene.load_image(c, f)
-            m = scene.load_mask(c, f)
-            if downscale > 1:
-                h, w = img.shape[0] // downscale * downscale, img.shape[1] // downscale * downscale
-                img = img[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale, 3).mean((1, 3))
-                m = m[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale).mean((1, 3))
-            ci.append(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
-            cm.append(np.round(np.clip(m, 0, 1) * 255).astype(np.uint8))
-        imgs.append(np.stack(ci))
-        masks.append(np.stack(cm))
-    return torch.from_numpy(np.stack(imgs)), torch.from_numpy(np.stack(masks))
 
 
 def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse", n_train: int | None = None,
@@ -71,7 +52,7 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
     sim_meta = gt.extra.get("simulation", {})
     truth_volume = float(sim_meta.get("particles_volume", 0.0)) or len(clouds[0]) * float(sim_meta.get("particle_volume", 0.0))
     particle_volume = truth_volume / len(particles) if truth_volume > 0 else particle_spacing**3
-    images, masks = load_images(scene, downscale)
+    images, masks = load_all_images(scene, downscale)
     cams = scene.cameras.scaled(1.0 / downscale) if downscale > 1 else scene.cameras
     colors = _colors_from_images(particles, cams, images[:, 0], masks[:, 0], train)
     n = len(particles)

@@ -1,0 +1,338 @@
+"""The whole job for one scene: stage 0, particle continuum, a strategy, prediction, metrics, report.
+
+Run folder layout (every step resumes or is skipped when its output exists)::
+
+    RUN/
+      settings.json         the resolved settings of this run
+      stage0/               4D Gaussians checkpoints (last.ckpt), gaussians.ply (canonical, 3DGS layout)
+      continuum/            particles.ply, surface_XXX.ply
+      physics_input.pt      the physics stages' input (Gaussians, particles, surfaces, images)
+      physics/              checkpoints/, logs/, estimate.json, history.json
+      evaluation/           evaluation.json, prediction.npz, renders.npz
+      report/               trajectories.png, per_frame.png, prediction_vs_truth.mp4 (+ _future.png)
+      summary.json          estimated parameters next to the truth, headline metrics, timings
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import torch
+
+__all__ = ["RunSettings", "run_pipeline", "load_fitted_module"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunSettings:
+    """Settings of :func:`run_pipeline`.
+
+    Attributes:
+        scene: scene folder (any supported layout, see :func:`toolkit.data.load_scene`).
+        out: run folder.
+        material: registered material name; ``material_options`` its options.
+        initial_params: starting guesses (default: the material's defaults, GIC's guesses).
+        optimize_params: material parameters to optimize (default: those the material marks).
+        curriculum: strategy name, schedule string (``progressive`` is ProJo4D) or the import path
+            of a :class:`~strategies.Strategy` subclass (``my_pkg.module.MyStrategy``).
+        curriculum_options: options of a named strategy (e.g. ``{"stage2_iterations": 60}``).
+        cameras: fitting cameras: ``"sparse"`` (1-based 2, 6, 10), ``"all"`` or 0-based indices.
+        n_train: training frames (default: the scene's split, else min(14, T)).
+        downscale: integer image downscale factor.
+        stage0: ``"full"`` (GIC: 40k iterations), ``"tiny"`` (tests, demo) or a dict of
+            :class:`toolkit.scene.stage0.Stage0Schedule` fields.
+        geometry: ``"stage0"`` (the method) or ``"oracle"`` (ground-truth geometry, for ablations).
+        sim: :class:`toolkit.mpm.SimConfig` fields for the physics stages.
+        continuum: :class:`toolkit.scene.continuum.ContinuumConfig` fields (default: a lattice at
+            ``sim.dx / 2``).
+        lambda_geometry: weight of the geometric loss.
+        learning_rates: overrides of the physics learning rates.
+        renderer: renderer name or ``"auto"``.
+        device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
+        checkpoint_every: physics iterations between checkpoints.
+        report_cameras: cameras shown in the video (default: two fitted and two held-out ones).
+        seed: seed of stage 0 and of the batch sampling.
+    """
+
+    scene: str
+    out: str = "runs/run"
+    material: str = "neo_hookean"
+    material_options: dict = field(default_factory=dict)
+    initial_params: Optional[dict] = None
+    optimize_params: Optional[list[str]] = None
+    curriculum: str = "progressive"
+    curriculum_options: dict = field(default_factory=dict)
+    cameras: Union[str, list[int]] = "sparse"
+    n_train: Optional[int] = None
+    downscale: int = 1
+    stage0: Union[str, dict] = "full"
+    geometry: str = "stage0"
+    sim: dict = field(default_factory=dict)
+    continuum: dict = field(default_factory=dict)
+    lambda_geometry: float = 1.0
+    learning_rates: Optional[dict] = None
+    renderer: str = "auto"
+    device: str = "auto"
+    checkpoint_every: int = 50
+    report_cameras: Optional[list[int]] = None
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not Path(self.scene).is_dir():
+            raise FileNotFoundError(f"scene folder {self.scene} does not exist")
+        if self.geometry not in ("stage0", "oracle"):
+            raise ValueError(f"geometry must be 'stage0' or 'oracle', got {self.geometry!r}")
+        if isinstance(self.stage0, str) and self.stage0 not in ("full", "tiny"):
+            raise ValueError(f"stage0 must be 'full', 'tiny' or a dict of Stage0Schedule fields, got {self.stage0!r}")
+        if not isinstance(self.downscale, int) or self.downscale < 1:
+            raise ValueError(f"downscale must be an integer >= 1, got {self.downscale!r}")
+
+
+def _device(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
+def _accelerator(device: str) -> str:
+    return "gpu" if device.startswith("cuda") else "cpu"
+
+
+def _stage0_schedule(spec):
+    from toolkit.scene.stage0 import Stage0Schedule
+
+    if spec == "full":
+        return Stage0Schedule.full()
+    if spec == "tiny":
+        return Stage0Schedule.tiny()
+    return Stage0Schedule.from_dict(spec)
+
+
+def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
+    """Stage 0 + continuum (or the oracle), written as ``run/physics_input.pt``."""
+    from toolkit.physics.inputs import PhysicsInput, load_all_images
+
+    path = run / "physics_input.pt"
+    if path.is_file():
+        return path
+    device = _device(s.device)
+    if s.geometry == "oracle":
+        from toolkit.physics.oracle import oracle_input
+
+        t = time.perf_counter()
+        inp = oracle_input(s.scene, cameras=s.cameras, n_train=s.n_train, particle_spacing=s.sim.get("dx", 0.02) / 2,
+                           downscale=s.downscale)
+        timings["oracle_s"] = time.perf_counter() - t
+        inp.save(path)
+        return path
+
+    from toolkit.data import load_scene
+    from toolkit.scene.continuum import ContinuumConfig, build_continuum
+    from toolkit.scene.export import save_ply
+    from toolkit.scene.stage0 import Gaussians4DModule, Stage0DataModule, fit_stage0
+
+    scene = load_scene(s.scene)
+    data = Stage0DataModule(scene, cameras=s.cameras, n_train=training_frames(scene, s.n_train), downscale=s.downscale)
+    views = data.training_views()
+    stage0_dir = run / "stage0"
+    last = stage0_dir / "last.ckpt"
+    t = time.perf_counter()
+    module = Gaussians4DModule(_stage0_schedule(s.stage0), renderer=None if s.renderer == "auto" else s.renderer, seed=s.seed)
+    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=last if last.is_file() else None,
+                        accelerator=_accelerator(device), progress_bar=True)
+    timings["stage0_s"] = time.perf_counter() - t
+    module = module.to(device).eval()
+    t0 = float(views.times[0])
+    save_ply(stage0_dir / "gaussians.ply", module, time=t0)
+
+    t = time.perf_counter()
+    dx = float(s.sim.get("dx", 0.02))
+    cfg = {"grid_size": 8 * dx / 2, "candidate_level": 3, "final_level": 3, **s.continuum}
+    with torch.no_grad():
+        cont = build_continuum(module, views.to(device), config=ContinuumConfig.from_dict(cfg), device=device)
+    cont.save(run / "continuum")
+    timings["continuum_s"] = time.perf_counter() - t
+    log.info(cont.summary())
+    with torch.no_grad():
+        g0 = module.gaussians_at(t0).detach()
+    g0 = g0.to("cpu")
+    images, masks = load_all_images(scene, s.downscale)
+    T = scene.n_frames
+    surfaces = list(cont.surfaces) + [torch.zeros((0, 3))] * (T - len(cont.surfaces))
+    gt = None
+    if scene.ground_truth is not None:
+        g = scene.ground_truth
+        gt = {"material": g.material, "params": dict(g.params), "v0": g.v0, "gravity": g.gravity, "effects": g.effects,
+              "point_clouds": [str(p) for p in g.point_clouds]}
+    cams = scene.cameras.scaled(1.0 / s.downscale) if s.downscale > 1 else scene.cameras
+    inp = PhysicsInput(gaussians=g0, particles=cont.particles.float(), particle_volume=cont.particle_volume, surfaces=surfaces,
+                       cameras=cams, train_cameras=list(views.camera_indices), images=images, masks=masks,
+                       times=torch.as_tensor(scene.times, dtype=torch.float32), n_train=len(views.frames), ground_truth=gt,
+                       meta={"scene_root": str(s.scene), "source": "stage0", "continuum": cont.stats})
+    inp.save(path)
+    return path
+
+
+def resolve_curriculum(spec: str, options: Optional[dict] = None):
+    """A strategy from a name, a schedule string or ``package.module.Class`` (+ options)."""
+    from strategies import get_strategy
+
+    options = dict(options or {})
+    if ":" in spec:
+        return get_strategy(spec)
+    if "." in spec:
+        import importlib
+
+        module_name, _, cls_name = spec.rpartition(".")
+        try:
+            cls = getattr(importlib.import_module(module_name), cls_name)
+        except (ImportError, AttributeError) as err:
+            raise ValueError(f"cannot import strategy class {spec!r}: {err}") from None
+        return get_strategy(cls, **options)
+    return get_strategy(spec, **options)
+
+
+def training_frames(scene, n_train: Optional[int]) -> int:
+    """Frames ``[0, n_train)`` are fitted: the given number, else the split the scene records
+    (the generator's ``ground_truth.json``), else ``min(14, T - 1)`` (PAC-NeRF's 14 + future)."""
+    T = scene.n_frames
+    if n_train is not None:
+        if not 1 <= n_train <= T:
+            raise ValueError(f"n_train must be in [1, {T}] for {scene.root}, got {n_train}")
+        return n_train
+    gt = scene.ground_truth
+    recorded = (gt.extra.get("frames", {}) or {}).get("n_train_frames") if gt is not None else None
+    if recorded:
+        return int(recorded)
+    return max(1, min(14, T - 1))
+
+
+def load_fitted_module(run: str | Path, device: str = "cpu"):
+    """The fitted :class:`~toolkit.physics.InversePhysicsModule` of a run folder (last checkpoint)."""
+    from toolkit.mpm import SimConfig
+    from toolkit.physics import InversePhysicsModule
+
+    run = Path(run)
+    ckpt_path = run / "physics" / "checkpoints" / "last.ckpt"
+    if not ckpt_path.is_file():
+        raise FileNotFoundError(f"{ckpt_path} does not exist: fit the run first (projo4d run)")
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    hp = dict(ckpt["hyper_parameters"])
+    sim = SimConfig(**{k: v for k, v in hp.pop("sim").items() if k != "frame_dt"})
+    for k in ("input_path", "curriculum_name"):
+        hp.pop(k, None)
+    module = InversePhysicsModule(str(run / "physics_input.pt"), sim=sim, **hp)
+    module.load_state_dict(ckpt["state_dict"], strict=False)
+    module.on_load_checkpoint(ckpt)
+    return module.to(device)
+
+
+def _restore_finished_fit(module, physics_dir: Path) -> bool:
+    """Load the last checkpoint into ``module`` if that fit already ran its whole curriculum."""
+    est_path, ckpt_path = physics_dir / "estimate.json", physics_dir / "checkpoints" / "last.ckpt"
+    if not (est_path.is_file() and ckpt_path.is_file()):
+        return False
+    if json.loads(est_path.read_text()).get("iterations") != module.total_iterations:
+        return False
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+    if ckpt.get("projo4d", {}).get("curriculum_step") != module.total_iterations:
+        return False
+    module.load_state_dict(ckpt["state_dict"], strict=False)
+    module.on_load_checkpoint(ckpt)
+    log.info("physics fit in %s is complete: loaded its last checkpoint", physics_dir)
+    return True
+
+
+def run_pipeline(settings: RunSettings) -> dict:
+    """Run every step for one scene; returns (and writes) ``summary.json``."""
+    from strategies import get_strategy
+    from toolkit.evaluation import evaluate_module
+    from toolkit.mpm import SimConfig
+    from toolkit.physics import InversePhysicsModule
+    from toolkit.physics.fit import fit_physics
+    from toolkit.report import write_report
+
+    s = settings
+    s.validate()
+    run = Path(s.out)
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "settings.json").write_text(json.dumps(asdict(s), indent=2))
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    device = _device(s.device)
+
+    input_path = build_physics_input(s, run, timings)
+    sim = SimConfig(**{"auto_dt_halving": True, **s.sim})
+    curriculum = resolve_curriculum(s.curriculum, s.curriculum_options)
+    module = InversePhysicsModule(str(input_path), material=s.material, material_options=s.material_options,
+                                  initial_params=s.initial_params, optimize_params=s.optimize_params,
+                                  curriculum=curriculum, renderer=s.renderer, sim=sim,
+                                  lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed)
+    t = time.perf_counter()
+    if not _restore_finished_fit(module, run / "physics"):
+        fit_physics(module, run / "physics", resume="last", checkpoint_every=s.checkpoint_every, accelerator=_accelerator(device))
+    timings["physics_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    module = module.to(device)
+    evaluation = evaluate_module(module, run / "evaluation")
+    timings["evaluation_s"] = time.perf_counter() - t
+    import numpy as np
+
+    renders = np.load(run / "evaluation" / "renders.npz")["renders"].transpose(1, 0, 2, 3, 4)
+    inp = module.input
+    cams = s.report_cameras or (inp.train_cameras[:2] + inp.held_out_cameras[:2])
+    files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
+                         evaluation, inp.ground_truth, inp.images.numpy(), renders, cams)
+    timings["total_s"] = time.perf_counter() - t_all
+    summary = _summary(module, evaluation, timings, files)
+    (run / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> dict:
+    est = module.estimate()
+    gt = module.input.ground_truth or {}
+    rows = []
+    for name, value in est["params"].items():
+        truth = (gt.get("params") or {}).get(name)
+        rows.append({"parameter": name, "estimate": value, "truth": truth})
+    for i, c in enumerate("xyz"):
+        rows.append({"parameter": f"v0_{c}", "estimate": est["v0"][i], "truth": None if gt.get("v0") is None else gt["v0"][i]})
+    geo = evaluation.get("geometry") or {}
+    img = (evaluation.get("images") or {}).get("all_cameras") or {}
+    return {
+        "material": est["material"],
+        "curriculum": module.curriculum.schedule_string(module.material.registry_name or None),
+        "parameters": rows,
+        "errors": evaluation.get("errors", {}),
+        "future": {"cd": geo.get("cd_future"), "emd": geo.get("emd_future"), "psnr": img.get("psnr_future"),
+                   "ssim": img.get("ssim_future")},
+        "train": {"cd": geo.get("cd_train"), "emd": geo.get("emd_train"), "psnr": img.get("psnr_train"),
+                  "ssim": img.get("ssim_train")},
+        "timings_s": {k: round(v, 1) for k, v in timings.items()},
+        "report": [str(f) for f in files],
+    }
+
+
+def format_summary(summary: dict) -> str:
+    """A small table of the estimate next to the truth, for terminals."""
+    lines = [f"material {summary['material']}, curriculum {summary['curriculum']}",
+             f"{'parameter':<18}{'estimate':>14}{'truth':>14}"]
+    for r in summary["parameters"]:
+        est, tru = r["estimate"], r["truth"]
+        fmt = (lambda v: "-" if v is None else (f"{v:.4g}"))  # noqa: E731
+        lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}")
+    fut = summary["future"]
+    if fut.get("cd") is not None:
+        lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "
+                     f"SSIM {fut['ssim'] or float('nan'):.3f}")
+    lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
+    return "\n".join(lines)

@@ -1,0 +1,176 @@
+"""Figures and videos of a run: optimization trajectories, per-frame errors, prediction vs truth.
+
+* :func:`plot_trajectories`: loss terms, material parameters, v0 and parameter errors against the
+  iteration, with the curriculum's stages shaded (as the paper's appendix figure);
+* :func:`plot_per_frame`: Chamfer/EMD/PSNR per frame, training and future frames marked;
+* :func:`comparison_video`: ground truth and prediction side by side for a few cameras, every
+  frame (MP4, with a PNG strip of the future frames).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report"]
+
+_LOG_PARAMS = {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _shade_stages(ax, curriculum: Sequence[dict]) -> None:
+    for i, s in enumerate(curriculum):
+        ax.axvspan(s["start"], s["end"], color="0.85" if i % 2 == 0 else "0.95", zorder=0, lw=0)
+        ax.text((s["start"] + s["end"]) / 2, 1.0, s["name"], transform=ax.get_xaxis_transform(), ha="center", va="bottom",
+                fontsize=7, color="0.3")
+
+
+def plot_trajectories(history: Sequence[dict], curriculum: Sequence[dict], path: str | Path,
+                      truth: Optional[dict] = None) -> Path:
+    """One figure: losses, each material parameter (log10 where optimized in log space), v0, errors."""
+    plt = _plt()
+    truth = truth or {}
+    steps = np.array([h["step"] for h in history])
+    params = sorted({k[6:] for h in history for k in h if k.startswith("param/")})
+    panels = ["loss"] + [f"param/{p}" for p in params] + ["v0"] + (["error"] if any(k.startswith("error/") for k in history[-1]) else [])
+    ncols = 3
+    nrows = math.ceil(len(panels) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 2.9 * nrows), squeeze=False)
+    for ax, panel in zip(axes.flat, panels):
+        _shade_stages(ax, curriculum)
+        if panel == "loss":
+            for key in sorted({k for h in history for k in h if k.startswith("loss/")}):
+                ax.plot(steps, [h.get(key, np.nan) for h in history], label=key[5:])
+            ax.set_yscale("log")
+            ax.set_title("loss", fontsize=9, pad=12)
+        elif panel.startswith("param/"):
+            name = panel[6:]
+            vals = np.array([h.get(panel, np.nan) for h in history], dtype=float)
+            log = name in _LOG_PARAMS
+            ax.plot(steps, np.log10(vals) if log else vals, color="C0", label="estimate")
+            gt = truth.get("params", {}).get(name)
+            if gt is not None:
+                ax.axhline(math.log10(gt) if log else gt, color="C3", ls="--", label="truth")
+            ax.set_title(f"log10 {name}" if log else name, fontsize=9, pad=12)
+        elif panel == "v0":
+            for i, c in enumerate("xyz"):
+                ax.plot(steps, [h.get(f"v0/{c}", np.nan) for h in history], color=f"C{i}", label=f"v0 {c}")
+                if truth.get("v0") is not None:
+                    ax.axhline(truth["v0"][i], color=f"C{i}", ls="--", lw=0.8)
+            ax.set_title("initial velocity (m/s)", fontsize=9, pad=12)
+        else:
+            for key in sorted({k for h in history for k in h if k.startswith("error/")}):
+                ax.plot(steps, [h.get(key, np.nan) for h in history], label=key[6:])
+            ax.set_title("parameter error (MAE)", fontsize=9, pad=12)
+        ax.set_xlabel("iteration", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=7, loc="best")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
+    """Per-frame Chamfer, EMD, PSNR and SSIM with the training/future split marked."""
+    series = []
+    if evaluation.get("geometry"):
+        series += [("Chamfer distance (x1e3)", evaluation["geometry"]["cd_per_frame"]),
+                   ("EMD (m)", evaluation["geometry"]["emd_per_frame"])]
+    if evaluation.get("images"):
+        im = evaluation["images"]["all_cameras"]
+        series += [("PSNR (dB), all cameras", im["psnr_per_frame"]), ("SSIM, all cameras", im["ssim_per_frame"])]
+    if not series:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(series), figsize=(3.6 * len(series), 2.8), squeeze=False)
+    n_train = evaluation["n_train"]
+    for ax, (title, vals) in zip(axes.flat, series):
+        ax.plot(range(len(vals)), [np.nan if v is None else v for v in vals], marker="o", ms=3)
+        ax.axvspan(n_train - 0.5, len(vals) - 0.5, color="C1", alpha=0.12, lw=0, label="future")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("frame", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    """Burn a small label into the top-left corner (no font dependency: a plain bar)."""
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray(img)
+    ImageDraw.Draw(im).text((3, 2), text, fill=(255, 255, 255))
+    return np.asarray(im)
+
+
+def comparison_video(gt: np.ndarray, pred: np.ndarray, n_train: int, path: str | Path, fps: float = 8.0,
+                     camera_names: Sequence[str] | None = None) -> list[Path]:
+    """Side-by-side ground truth (top) and prediction (bottom) for C cameras and T frames.
+
+    Args:
+        gt, pred: (C, T, H, W, 3) uint8.
+        n_train: first future frame (labelled "future" in the video).
+        path: the MP4 path; a PNG strip of the future frames is written next to it.
+
+    Returns:
+        The files written.
+    """
+    import imageio.v3 as iio
+
+    C, T = gt.shape[:2]
+    frames = []
+    for t in range(T):
+        top = np.concatenate(list(gt[:, t]), axis=1)
+        bottom = np.concatenate(list(pred[:, t]), axis=1)
+        tile = np.concatenate([top, bottom], axis=0)
+        tag = "future" if t >= n_train else "fit"
+        frames.append(_label(np.ascontiguousarray(tile), f"t={t} {tag} | top: truth, bottom: prediction"))
+    path = Path(path)
+    written = []
+    try:
+        iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", macro_block_size=1)
+        written.append(path)
+    except Exception:  # no ffmpeg available: a GIF instead
+        gif = path.with_suffix(".gif")
+        iio.imwrite(gif, np.stack(frames), duration=1000 / fps, loop=0)
+        written.append(gif)
+    future = frames[n_train:] or frames[-1:]
+    strip = path.with_name(path.stem + "_future.png")
+    iio.imwrite(strip, np.concatenate(future, axis=1) if len(future) < 5 else np.concatenate(future[:: max(1, len(future) // 4)], axis=1))
+    written.append(strip)
+    return written
+
+
+def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Sequence[dict], evaluation: dict,
+                 truth: Optional[dict], gt_images: Optional[np.ndarray], pred_images: Optional[np.ndarray],
+                 cameras: Sequence[int]) -> list[Path]:
+    """All figures and the video into ``run_dir/report``; returns the files."""
+    report = Path(run_dir) / "report"
+    report.mkdir(parents=True, exist_ok=True)
+    files = [plot_trajectories(history, curriculum, report / "trajectories.png", truth)]
+    p = plot_per_frame(evaluation, report / "per_frame.png")
+    if p:
+        files.append(p)
+    if gt_images is not None and pred_images is not None:
+        files += comparison_video(gt_images[list(cameras)], pred_images[list(cameras)], evaluation["n_train"],
+                                  report / "prediction_vs_truth.mp4")
+    return files
