@@ -47,7 +47,8 @@ class RunSettings:
         n_train: training frames (default: the scene's split, else min(14, T)).
         downscale: integer image downscale factor.
         stage0: ``"full"`` (GIC: 40k iterations), ``"tiny"`` (tests, demo) or a dict of
-            :class:`toolkit.scene.stage0.Stage0Schedule` fields.
+            :class:`toolkit.scene.stage0.Stage0Schedule` fields (plus ``preset``: the network and
+            initialization preset they modify, default ``"full"``).
         geometry: ``"stage0"`` (the method) or ``"oracle"`` (ground-truth geometry, for ablations).
         sim: :class:`toolkit.mpm.SimConfig` fields for the physics stages.
         continuum: :class:`toolkit.scene.continuum.ContinuumConfig` fields (default: a lattice at
@@ -105,14 +106,21 @@ def _accelerator(device: str) -> str:
     return "gpu" if device.startswith("cuda") else "cpu"
 
 
-def _stage0_schedule(spec):
+def _stage0_module(spec, renderer: str, seed: int):
+    """The stage-0 module of a preset name (consistent schedule and network) or a schedule dict."""
+    from toolkit.scene.stage0 import Gaussians4DModule
+
+    kw = {"seed": seed}
+    if renderer != "auto":
+        kw["renderer"] = renderer
+    if spec in ("full", "tiny"):
+        return Gaussians4DModule.from_preset(spec, **kw)
     from toolkit.scene.stage0 import Stage0Schedule
 
-    if spec == "full":
-        return Stage0Schedule.full()
-    if spec == "tiny":
-        return Stage0Schedule.tiny()
-    return Stage0Schedule.from_dict(spec)
+    spec = dict(spec)
+    preset = spec.pop("preset", "full")
+    base = (Stage0Schedule.tiny() if preset == "tiny" else Stage0Schedule.full()).to_dict()
+    return Gaussians4DModule.from_preset(preset, schedule={**base, **spec}, **kw)
 
 
 def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
@@ -136,7 +144,7 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     from toolkit.data import load_scene
     from toolkit.scene.continuum import ContinuumConfig, build_continuum
     from toolkit.scene.export import save_ply
-    from toolkit.scene.stage0 import Gaussians4DModule, Stage0DataModule, fit_stage0
+    from toolkit.scene.stage0 import Stage0DataModule, fit_stage0
 
     scene = load_scene(s.scene)
     data = Stage0DataModule(scene, cameras=s.cameras, n_train=training_frames(scene, s.n_train), downscale=s.downscale)
@@ -144,7 +152,7 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     stage0_dir = run / "stage0"
     last = stage0_dir / "last.ckpt"
     t = time.perf_counter()
-    module = Gaussians4DModule(_stage0_schedule(s.stage0), renderer=None if s.renderer == "auto" else s.renderer, seed=s.seed)
+    module = _stage0_module(s.stage0, s.renderer, s.seed)
     module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=last if last.is_file() else None,
                         accelerator=_accelerator(device), progress_bar=True)
     timings["stage0_s"] = time.perf_counter() - t
@@ -261,6 +269,9 @@ def run_pipeline(settings: RunSettings) -> dict:
 
     s = settings
     s.validate()
+    if _device(s.device) == "cpu":
+        # small CPU problems: torch's thread pool costs more than it gives on a shared machine
+        torch.set_num_threads(1)
     run = Path(s.out)
     run.mkdir(parents=True, exist_ok=True)
     (run / "settings.json").write_text(json.dumps(asdict(s), indent=2))
