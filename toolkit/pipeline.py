@@ -96,6 +96,14 @@ class RunSettings:
             raise ValueError(f"downscale must be an integer >= 1, got {self.downscale!r}")
 
 
+def _latest_checkpoint(folder: Path) -> Optional[Path]:
+    """``last.ckpt`` if present (a finished run), else the newest ``step_*.ckpt`` (an interrupted one)."""
+    if (folder / "last.ckpt").is_file():
+        return folder / "last.ckpt"
+    steps = sorted(folder.glob("step_*.ckpt"))
+    return steps[-1] if steps else None
+
+
 def _device(name: str) -> str:
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
@@ -150,11 +158,13 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     data = Stage0DataModule(scene, cameras=s.cameras, n_train=training_frames(scene, s.n_train), downscale=s.downscale)
     views = data.training_views()
     stage0_dir = run / "stage0"
-    last = stage0_dir / "last.ckpt"
     t = time.perf_counter()
     module = _stage0_module(s.stage0, s.renderer, s.seed)
-    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=last if last.is_file() else None,
+    every = max(500, module.schedule.iterations // 20)
+    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=_latest_checkpoint(stage0_dir), checkpoint_every=every,
                         accelerator=_accelerator(device), progress_bar=True)
+    for old in stage0_dir.glob("step_*.ckpt"):  # finished: last.ckpt is enough
+        old.unlink()
     timings["stage0_s"] = time.perf_counter() - t
     module = module.to(device).eval()
     t0 = float(views.times[0])
