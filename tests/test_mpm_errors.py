@@ -129,3 +129,25 @@ def test_bad_config_and_effects():
     with pytest.raises(EffectError, match="ground_friction needs a ground plane"):
         s = MPMSimulator("neo_hookean", SimConfig(ground_height=None), effects=["ground_friction"])
         s.rollout(block((2, 2, 2), 0.02, (0.5, 0.5, 0.5)), n_frames=1)
+
+
+def test_auto_sized_grid_grows_and_gives_the_big_grid_result(device):
+    """An extra acceleration (not known to the grid's ballistic estimate) turns the body back past
+    its start and out of the auto-sized grid: the grid grows and the rollout is rerun; the result
+    equals a rollout on a grid that was large enough from the start."""
+    x0 = block((4, 4, 4), 0.02, (0.5, 0.5, 0.5))
+    v0 = torch.tensor([3.0, 0.0, 0.0])
+    kw = dict(dx=0.04, substeps=40, ground_height=None, gravity=(0.0, 0.0, 0.0))
+
+    def run(**cfg):
+        sim = MPMSimulator("neo_hookean", SimConfig(**kw, **cfg), effects=["extra_acceleration"], device=device)
+        ep = sim.pack_effects({"extra_acceleration": {"ax": -20.0}})
+        return sim, sim.rollout(x0, v0, sim.material.pack({"E": 2e4}), effect_params=ep, n_frames=12)
+
+    small, out = run(margin=0.05)
+    assert small.grid.origin[0] < -0.4  # x reaches 0.5 + 3 t - 10 t^2 = -0.5 m at t = 0.5 s: the grid grew
+    assert out.positions[..., 0].min().item() < -0.4
+    _, ref = run(domain=((-1.2, 0.0, 0.0), (1.6, 1.0, 1.0)))
+    torch.testing.assert_close(out.positions, ref.positions, atol=1e-5, rtol=0)
+    with pytest.raises(OutOfDomainError, match="left the simulation domain"):
+        run(margin=0.05, out_of_domain="error")

@@ -19,12 +19,14 @@ BOUNDARY_MODES = ("sticky", "slip", "separate")
 
 
 class SimulationError(RuntimeError):
-    """A rollout could not continue. ``frame`` and ``substep`` (global, 0-based) say where."""
+    """A rollout could not continue. ``frame`` and ``substep`` (global, 0-based) say where;
+    ``points`` holds the particle positions when the failure was detected (or None)."""
 
-    def __init__(self, message: str, frame: int | None = None, substep: int | None = None):
+    def __init__(self, message: str, frame: int | None = None, substep: int | None = None, points=None):
         super().__init__(message)
         self.frame = frame
         self.substep = substep
+        self.points = points
 
 
 class OutOfDomainError(SimulationError):
@@ -57,7 +59,10 @@ class SimConfig:
             particles' initial positions, the ballistic trajectory and ``margin``. Corners are
             snapped to multiples of dx, so results do not depend on the domain size.
         margin: metres added around the auto-sized domain.
-        out_of_domain: ``error`` raises :class:`OutOfDomainError` when a particle leaves the grid;
+        out_of_domain: what happens when a particle leaves the grid: ``grow`` (default) enlarges
+            an auto-sized grid around the particles and reruns the rollout (the lattice is snapped
+            to dx, so the result is the one a larger grid would have given from the start; with an
+            explicit ``domain`` it acts as ``error``); ``error`` raises :class:`OutOfDomainError`;
             ``clamp`` keeps particles inside (domain faces act as separating walls).
         cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
         graphs: capture chains of substeps as Warp graphs and replay them (removes the Python
@@ -80,7 +85,7 @@ class SimConfig:
     boundary: Literal["sticky", "slip", "separate"] = "sticky"
     domain: Optional[tuple[Sequence[float], Sequence[float]]] = None
     margin: float = 0.2
-    out_of_domain: Literal["error", "clamp"] = "error"
+    out_of_domain: Literal["grow", "error", "clamp"] = "grow"
     cfl: float = 0.4
     graphs: bool | str = "auto"
     auto_dt_halving: bool = False
@@ -105,7 +110,7 @@ class SimConfig:
         need(self.particle_volume is None or self.particle_volume > 0, f"particle_volume must be > 0 m^3, got {self.particle_volume!r}")
         need(len(tuple(self.gravity)) == 3, f"gravity must have 3 components, got {self.gravity!r}")
         need(self.boundary in BOUNDARY_MODES, f"boundary must be one of {BOUNDARY_MODES}, got {self.boundary!r}")
-        need(self.out_of_domain in ("error", "clamp"), f"out_of_domain must be 'error' or 'clamp', got {self.out_of_domain!r}")
+        need(self.out_of_domain in ("grow", "error", "clamp"), f"out_of_domain must be 'grow', 'error' or 'clamp', got {self.out_of_domain!r}")
         need(0 < self.cfl <= 1.0, f"cfl must be in (0, 1], got {self.cfl!r}")
         need(self.margin >= 0, f"margin must be >= 0 metres, got {self.margin!r}")
         need(isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1, f"checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")

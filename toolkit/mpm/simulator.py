@@ -432,7 +432,7 @@ class MPMSimulator:
     def _check_status(self, status, frame: int, substeps: int, state: _ParticleState) -> None:
         """Raise for the first failure flagged during ``frame`` (flags hold frame-local substeps)."""
         flags = status.numpy()
-        oob = flags[0] if self.config.out_of_domain == "error" else NO_FLAG
+        oob = flags[0] if self.config.out_of_domain != "clamp" else NO_FLAG
         first = min(int(oob), int(flags[1]), int(flags[2]))
         if first == NO_FLAG:
             return
@@ -449,7 +449,7 @@ class MPMSimulator:
             raise OutOfDomainError(
                 f"{detail} left the simulation domain [{np.round(lo, 3).tolist()}, {np.round(hi, 3).tolist()}] "
                 f"at {where}; enlarge SimConfig.domain or SimConfig.margin, or set out_of_domain='clamp'",
-                frame=s // substeps, substep=s,
+                frame=s // substeps, substep=s, points=x,
             )
         if int(flags[1]) == first:
             v = np.linalg.norm(state.v.numpy(), axis=1)
@@ -591,18 +591,53 @@ class MPMSimulator:
     # ------------------------------------------------------------------ forward core
     def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints,
                              return_deformation=False, tracers=None):
-        """Forward pass with optional automatic dt halving on CFL/NaN failures."""
+        """Forward pass with optional automatic dt halving on CFL/NaN failures and grid growth when a
+        particle leaves an auto-sized grid (``out_of_domain="grow"``)."""
         substeps = self.config.substeps
-        for attempt in range(self.config.max_dt_halvings + 1):
+        halvings = grows = 0
+        while True:
             try:
                 return self._forward(x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints,
                                      return_deformation, tracers)
-            except (CFLError, NaNError) as err:
-                if not self.config.auto_dt_halving or attempt == self.config.max_dt_halvings:
+            except OutOfDomainError as err:
+                if not self._can_grow(err) or grows >= 4:
                     raise
+                grows += 1
+                self._grow_grid(err.points)
+            except (CFLError, NaNError) as err:
+                if not self.config.auto_dt_halving or halvings >= self.config.max_dt_halvings:
+                    raise
+                halvings += 1
                 log.warning("%s; halving dt (substeps %d -> %d) and rerunning", type(err).__name__, substeps, 2 * substeps)
                 substeps *= 2
-        raise AssertionError("unreachable")
+
+    def _can_grow(self, err: OutOfDomainError) -> bool:
+        return self.config.out_of_domain == "grow" and self.config.domain is None and err.points is not None
+
+    def _grow_grid(self, state: np.ndarray) -> None:
+        """Enlarge the grid around the particles of the frame in which they left it.
+
+        Args:
+            state: (N, 6) positions and velocities at the start of that frame; the grid is grown to
+                hold where they can reach within two frames at twice their speed, plus the margin.
+        """
+        state = np.asarray(state, np.float64)
+        state = state[np.all(np.isfinite(state), axis=1)]
+        if not len(state):
+            raise OutOfDomainError("particles left the domain and no finite state is left to grow the grid around")
+        x, v = state[:, :3], state[:, 3:]
+        reach = 4.0 * np.abs(v) * self.config.frame_dt
+        dx = self.config.dx
+        pad = max(2 * self.config.margin, 4 * dx)
+        lo = np.minimum(np.asarray(self._grid.origin), (x - reach).min(0) - pad)
+        hi = np.maximum(np.asarray(self._grid.upper), (x + reach).max(0) + pad)
+        if self.config.ground_height is not None:
+            lo[1] = max(lo[1], min(self._grid.origin[1], self.config.ground_height - 4 * dx))
+        origin = np.floor(lo / dx) * dx
+        dims = np.ceil((hi - origin) / dx).astype(int) + 1
+        spec = GridSpec(tuple(float(o) for o in origin), tuple(int(d) for d in dims), float(dx))
+        log.info("particles left the grid; growing it from %s to %s and rerunning", self._grid.dims, spec.dims)
+        self.set_grid(spec)
 
     def chunks(self, n_frames: int, substeps: int) -> list[tuple[int, int, int]]:
         """Checkpoint chunks as (frame, first global substep, length); none straddles a frame."""
@@ -706,7 +741,12 @@ class MPMSimulator:
             if return_deformation:
                 wp.copy(wp.from_torch(Fs[frame + 1], dtype=wp.mat33), a.F)
                 wp.copy(wp.from_torch(Js[frame + 1]), a.J)
-            self._check_status(status, frame, substeps, a)
+            try:
+                self._check_status(status, frame, substeps, a)
+            except OutOfDomainError as err:
+                # the end-of-frame state may be garbage already: keep the frame's (good) start state
+                err.points = torch.cat([positions[frame], velocities[frame]], 1).cpu().numpy()
+                raise
         out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
         if return_deformation:
             out["F"], out["J"] = Fs, Js
