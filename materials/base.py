@@ -19,8 +19,8 @@ degrees). :meth:`Material.to_physical` maps raw torch tensors to physical values
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal, Mapping
 
 import torch
 

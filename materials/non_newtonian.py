@@ -7,7 +7,6 @@ import warp as wp
 from materials import register_material
 from materials.base import Material, MaterialParam
 from materials.isotropic import exp_stretch, hencky_stress, log_stretch, make_isotropic_update, safe_norm
-from materials.newtonian import BULK_MODULUS, VISCOSITY
 
 __all__ = ["NonNewtonian"]
 

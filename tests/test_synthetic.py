@@ -17,7 +17,7 @@ import trimesh
 
 from materials import get_material
 from toolkit.cameras import Cameras
-from toolkit.data import load_scene, read_pac_nerf, read_ply_points
+from toolkit.data import load_scene, read_pac_nerf
 from toolkit.mpm import SimConfig
 from toolkit.synthetic import (
     SHAPES,

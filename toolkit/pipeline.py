@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Optional, Sequence, Union
 
 import torch
 
@@ -270,7 +269,6 @@ def _restore_finished_fit(module, physics_dir: Path) -> bool:
 
 def run_pipeline(settings: RunSettings) -> dict:
     """Run every step for one scene; returns (and writes) ``summary.json``."""
-    from strategies import get_strategy
     from toolkit.evaluation import evaluate_module
     from toolkit.mpm import SimConfig
     from toolkit.physics import InversePhysicsModule

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
@@ -30,7 +30,7 @@ import torch
 import warp as wp
 
 from materials import Material, get_material
-from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig, SimulationError
+from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
 from toolkit.mpm.kernels import (
     NO_FLAG,

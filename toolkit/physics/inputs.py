@@ -7,9 +7,9 @@ Everything is in the world frame (metres, y up, ground y = 0), frame 0 is the in
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Optional
 
 import numpy as np
 import torch

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-from pathlib import Path
 from typing import Any, Optional, Sequence, Union
 
 import numpy as np
@@ -43,7 +42,6 @@ from strategies.base import GROUPS
 from toolkit.metrics.geometry import chamfer_loss
 from toolkit.metrics.image import ssim_torch
 from toolkit.mpm import MPMSimulator, SimConfig
-from toolkit.mpm.config import SimulationError
 from toolkit.physics.embedding import carry, embed
 from toolkit.physics.inputs import PhysicsInput
 

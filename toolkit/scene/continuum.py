@@ -42,7 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import time as _time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -53,6 +53,7 @@ import torch.nn.functional as F
 from renderers import get_renderer
 from renderers.base import Gaussians, Renderer
 from toolkit.cameras import Cameras
+from toolkit.settings import DictSettings
 
 __all__ = ["ContinuumConfig", "Continuum", "build_continuum", "sanitize_gaussians", "density_volume"]
 
@@ -60,7 +61,9 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class ContinuumConfig:
+class ContinuumConfig(DictSettings):
+    settings_name = "continuum settings"
+
     """Settings of :func:`build_continuum` (defaults: GIC's PAC-NeRF configs, ``physics`` block).
 
     Attributes:
@@ -101,17 +104,6 @@ class ContinuumConfig:
     max_voxels: int = 1 << 24
     chunk: int = 1 << 20
 
-    @classmethod
-    def from_dict(cls, d: "ContinuumConfig | dict | None") -> "ContinuumConfig":
-        if d is None:
-            return cls()
-        if isinstance(d, cls):
-            return d
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown continuum settings {sorted(unknown)}; known: {sorted(names)}")
-        return cls(**d)
 
 
 @dataclass

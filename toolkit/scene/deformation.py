@@ -32,12 +32,13 @@ or (T,) for a batch of times (outputs then get a leading T dimension).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import NamedTuple, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+from toolkit.settings import DictSettings
 
 __all__ = [
     "FrequencyEncoding",
@@ -142,7 +143,9 @@ class CoefficientNet(nn.Module):
 
 
 @dataclass
-class DeformationConfig:
+class DeformationConfig(DictSettings):
+    settings_name = "deformation settings"
+
     """Hyper-parameters of :class:`DeformationNetwork`. Defaults are GIC's
     (``arguments/__init__.py::ModelParams`` with the PAC-NeRF / Spring-Gaus configs' ``timenet``).
 
@@ -188,20 +191,6 @@ class DeformationConfig:
             coeff_width=64, coeff_depth=1,
         )
 
-    @classmethod
-    def from_dict(cls, d: "DeformationConfig | dict | None") -> "DeformationConfig":
-        if d is None:
-            return cls()
-        if isinstance(d, cls):
-            return d
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown deformation settings {sorted(unknown)}; known: {sorted(names)}")
-        return cls(**d)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 class Deformation(NamedTuple):

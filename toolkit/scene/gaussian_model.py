@@ -27,7 +27,7 @@ The screen-space gradient is accumulated by the training loop (see
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from renderers.base import Gaussians
+from toolkit.settings import DictSettings
 
 __all__ = [
     "SH_C0",
@@ -99,7 +100,9 @@ def knn_scales(points: torch.Tensor | np.ndarray, k: int = 3, min_dist2: float =
 
 
 @dataclass
-class DensificationConfig:
+class DensificationConfig(DictSettings):
+    settings_name = "densification settings"
+
     """Thresholds of adaptive density control. Defaults are GIC's (``arguments/__init__.py``,
     ``train_gs.py``; 3DGS values in parentheses where they differ).
 
@@ -128,20 +131,6 @@ class DensificationConfig:
     opacity_reset_value: float = 0.01
     max_gaussians: Optional[int] = None
 
-    @classmethod
-    def from_dict(cls, d: "DensificationConfig | dict | None") -> "DensificationConfig":
-        if d is None:
-            return cls()
-        if isinstance(d, cls):
-            return d
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown densification settings {sorted(unknown)}; known: {sorted(names)}")
-        return cls(**d)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def _unwrap_optimizers(optimizers: Any) -> list[torch.optim.Optimizer]:

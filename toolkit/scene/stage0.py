@@ -41,7 +41,7 @@ from __future__ import annotations
 import logging
 import math
 import random
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Literal, Optional, Sequence
 
@@ -53,6 +53,7 @@ from torch.utils.data import DataLoader, IterableDataset
 from renderers import RENDERERS, get_renderer
 from renderers.base import Gaussians, RenderOutput
 from toolkit.cameras import Cameras
+from toolkit.settings import DictSettings
 from toolkit.scene.deformation import DeformationConfig, DeformationNetwork
 from toolkit.scene.gaussian_model import DensificationConfig, GaussianModel
 from toolkit.scene.initialization import (
@@ -96,7 +97,9 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -
 
 
 @dataclass
-class Stage0Schedule:
+class Stage0Schedule(DictSettings):
+    settings_name = "Stage0Schedule settings"
+
     """Iterations, learning rates, loss weights and densification settings of stage 0.
 
     Iteration numbers follow GIC's 1-based convention: iteration ``it = step + 1``.
@@ -200,19 +203,8 @@ class Stage0Schedule:
         )
 
     @classmethod
-    def from_dict(cls, d: "Stage0Schedule | dict | None") -> "Stage0Schedule":
-        if d is None:
-            return cls.full()
-        if isinstance(d, cls):
-            return d
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown Stage0Schedule settings {sorted(unknown)}; known: {sorted(names)}")
-        return cls(**d)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+    def defaults(cls) -> "Stage0Schedule":
+        return cls.full()
 
 
 # ====================================================================== data
