@@ -413,3 +413,18 @@ def test_relative_output_folder_gives_valid_ground_truth_paths(tmp_path, monkeyp
     scene = load_scene(tmp_path / "scenes" / "relative")
     assert all(p.is_file() for p in scene.ground_truth.point_clouds)
     assert len(scene.ground_truth.load_point_cloud(1)) > 0
+
+
+def test_stiffness_gradient_makes_one_side_stiffer(tmp_path):
+    """SceneSpec.stiffness_gradient: per-particle moduli 10^(g.(x-c)/h); the softer side squashes more."""
+    import numpy as np
+
+    from materials import get_material
+    from toolkit.synthetic.truth import particle_params
+
+    m = get_material("neo_hookean")
+    x = np.array([[-0.1, 0, 0], [0.0, 0, 0], [0.1, 0, 0]], np.float32)
+    p = particle_params(m, {"E": 1e5, "nu": 0.3}, x, (1.0, 0.0, 0.0))
+    np.testing.assert_allclose(p[:, 0].numpy(), [1e4, 1e5, 1e6], rtol=1e-5)  # one decade per half-extent
+    np.testing.assert_allclose(p[:, 1].numpy(), 0.3)
+    assert particle_params(m, {"E": 1e5, "nu": 0.3}, x, None).shape == (2,)

@@ -55,6 +55,10 @@ class SceneSpec:
         effects: ``{effect: {param: value}}`` (``toolkit.mpm.effects``); ``effect_options``
             ``{effect: {option: value}}`` (e.g. a wall's ``normal``).
         boundary: ground contact mode (``sticky``, ``slip``, ``separate``); the ground is y = 0.
+        stiffness_gradient: (3,) decades of stiffness change per half-extent of the body along x, y,
+            z: each particle's moduli (E, or mu and kappa for fluids) are multiplied by
+            ``10^(g . (x - c) / h)`` with c the rest centre and h the largest half-extent. ``None``
+            (default): a homogeneous body.
 
     Video and cameras:
         fps: frames per second; frame ``t`` is at ``t / fps`` seconds.
@@ -99,6 +103,7 @@ class SceneSpec:
     gravity: tuple[float, float, float] = (0.0, -9.8, 0.0)
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     effect_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    stiffness_gradient: Optional[tuple[float, float, float]] = None
     boundary: str = "sticky"
     fps: float = 24.0
     n_frames: int = 20
@@ -157,7 +162,7 @@ def spec_from_dict(d: dict) -> SceneSpec:
     if unknown:
         raise SpecError(f"SceneSpec has no field(s) {sorted(unknown)}")
     d = dict(d)
-    for key in ("position", "rotation_deg", "v0", "gravity", "elevations_deg"):
+    for key in ("position", "rotation_deg", "v0", "gravity", "elevations_deg", "stiffness_gradient"):
         if key in d and d[key] is not None:
             d[key] = tuple(d[key])
     return SceneSpec(**d)

@@ -94,6 +94,25 @@ def build_object(spec: SceneSpec) -> trimesh.Trimesh:
     return mesh
 
 
+def particle_params(material, params: dict, particles: np.ndarray, gradient):
+    """Material parameters for the truth: (P,) for a homogeneous body, (N, P) with the moduli
+    scaled by ``10^(g . (x - c) / h)`` when a stiffness gradient is given (see SceneSpec)."""
+    import torch
+
+    packed = material.pack(params)
+    if gradient is None or not any(gradient):
+        return packed
+    x = torch.as_tensor(np.asarray(particles), dtype=torch.float32)
+    c = x.mean(0)
+    h = float(((x.max(0).values - x.min(0).values) / 2).max().clamp_min(1e-6))
+    factor = torch.pow(10.0, ((x - c) / h) @ torch.tensor(gradient, dtype=torch.float32))
+    names = material.param_names
+    cols = [names.index("E")] if "E" in names else [names.index(n) for n in ("mu", "kappa") if n in names]
+    rows = packed.unsqueeze(0).repeat(len(x), 1)
+    rows[:, cols] *= factor.unsqueeze(1)
+    return rows
+
+
 def truth_substeps(spec: SceneSpec, sim, params: dict[str, float]) -> tuple[int, int, int]:
     """``(substeps, stable, viscous)``: the substeps per frame for the truth.
 
@@ -158,7 +177,7 @@ def simulate_truth(spec: SceneSpec, mesh: trimesh.Trimesh | None = None) -> Trut
     out = sim.rollout(
         particles,
         v0=np.asarray(spec.v0, np.float32),
-        params=material.pack(params),
+        params=particle_params(material, params, particles, spec.stiffness_gradient),
         gravity=np.asarray(spec.gravity, np.float32),
         effect_params=sim.pack_effects(spec.effects),
         n_frames=spec.n_frames - 1,

@@ -1,0 +1,229 @@
+"""Discovery: a hidden effect is named and added, the future gap shrinks, a null scene gets "no missing effect".
+
+The scenes (:mod:`toolkit.discovery.hidden`, size ``tiny``): an elastic box thrown onto a
+frictionless (``slip``) ground, 10 cameras at 32 px, 9 frames (6 for fitting, 3 future), the
+truth simulated with 16x the particles and 2.7x the substeps of the fit and rendered as a
+textured mesh. Each is fitted with the base model (no effect) by the physics trainer, then
+:func:`toolkit.discovery.discover` runs with the shipped, null-calibrated thresholds. The
+fitted scenes are shared at module scope (each is generated, fitted and discovered once).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from toolkit.discovery.hidden import HiddenScene, fit_base
+
+#: the base fit (the ``tiny`` size's curriculum) and discovery use the settings the shipped
+#: thresholds were calibrated with (``benchmarks/discovery.py --small``); the EMD is skipped
+DISCOVER = dict(emd=False)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """``runs(effect)``: the scene hiding ``effect`` at high strength (``"none"``: nothing hidden),
+    generated, fitted with the base model and discovered once per module."""
+    from toolkit.discovery import discover
+
+    cache: dict[str, SimpleNamespace] = {}
+    root = tmp_path_factory.mktemp("discovery")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: one thread is faster on shared cores
+
+    def get(effect: str) -> SimpleNamespace:
+        if effect not in cache:
+            hs = HiddenScene(effect, "none" if effect == "none" else "high")
+            scene = hs.generate(root / "scenes" / hs.name)
+            inp = hs.physics_input(scene)
+            run = root / "runs" / hs.name
+            inp.save(run / "physics_input.pt")
+            module = fit_base(inp, run / "physics")
+            result = discover(module, run / "discovery", **DISCOVER)
+            cache[effect] = SimpleNamespace(scene=hs, module=module, result=result, run=run)
+        return cache[effect]
+
+    yield get
+    torch.set_num_threads(threads)
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", ["ground_friction", "air_drag", "extra_acceleration"])
+def test_hidden_effect_is_named_and_the_future_gap_shrinks(runs, effect):
+    res = runs(effect).result
+    assert res.decision == effect, res.verdict
+    assert res.decision_kind == "physics" and res.identified
+    # the future-frame Chamfer gap (against the ground-truth clouds) shrinks by at least half
+    assert res.gap["cd_future_after"] <= 0.5 * res.gap["cd_future_before"], res.gap
+    assert res.gap["cd_shrink"] >= 0.5
+    # the held-out cameras see the improvement in the future frames too
+    assert res.gap["held_out_loss_future_after"] < res.gap["held_out_loss_future_before"]
+    s = res.final.strengths
+    if effect == "ground_friction":  # truth mu = 0.6
+        assert 0.3 < s["ground_friction.mu"] < 0.9
+        lo, hi = res.final.intervals["ground_friction.mu"]
+        assert lo <= s["ground_friction.mu"] <= hi
+    elif effect == "air_drag":  # truth linear 2.5 1/s
+        assert s["air_drag.linear"] + s["air_drag.quadratic"] > 0.5
+    else:  # truth (ax, ay, az) = (-4, 0, 2) m/s^2
+        assert s["extra_acceleration.ax"] < -2.0 and s["extra_acceleration.az"] > 0.5
+    # the ranking put the truth among the confirmed candidates, and the report says so
+    assert effect in res.refits
+    assert "discovered" in (runs(effect).run / "discovery" / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_null_scene_has_no_missing_effect(runs):
+    res = runs("none").result
+    assert res.decision is None and res.decision_kind == "none", res.verdict
+    assert res.verdict.startswith("No missing effect")
+    assert res.final is None and res.gap["cd_shrink"] == 0.0
+    # every confirmed physics candidate stays below the calibrated validation threshold
+    for name, v in res.validation.items():
+        if name != "base" and not v["control"]:
+            assert v["validation"] <= res.thresholds.validation
+
+
+@pytest.mark.slow
+def test_library_model_is_the_module_and_density_is_projected_out(runs):
+    """At zero strengths the library model moves exactly as the fitted module; density, which
+    only rescales E under gravity, has (almost) no score once E's direction is projected out."""
+    r = runs("none")
+    lib, res = r.result.lib, r.result
+    pred = r.module.predict_trajectory()
+    mine = lib.predict(lib.q0)
+    assert torch.equal(pred["positions"], mine["positions"]) and torch.allclose(pred["means"], mine["means"])
+    density = res.ranking.get("density")
+    g, pg = density.gradient["density.log_ratio"], density.projected_gradient["density.log_ratio"]
+    assert density.score < 1e-3 and abs(pg) < 0.2 * abs(g), (density.score, g, pg)
+    loc = res.localization
+    assert loc.heat.shape == (r.module.input.n_train, 3) and loc.image.shape == (10, r.module.input.n_train)
+
+
+@pytest.mark.slow
+def test_discover_command_on_a_run_folder(runs, tmp_path):
+    """``projo4d discover RUN_DIR`` on the pipeline's run layout (physics_input.pt +
+    physics/checkpoints/last.ckpt), and the module rebuilt from it equals the fitted one."""
+    from toolkit.cli import main
+    from toolkit.discovery import load_fitted_module
+
+    r = runs("ground_friction")
+    loaded = load_fitted_module(r.run)
+    assert loaded.estimate()["params"] == pytest.approx(r.module.estimate()["params"])
+    assert loaded.v0.tolist() == pytest.approx(r.module.v0.tolist())
+    out = tmp_path / "disc"
+    assert main(["discover", str(r.run), "--out", str(out), "--candidates", "ground_friction", "air_drag", "--top-k", "2",
+                 "--iterations", "3", "--final-iterations", "3", "--no-emd"]) == 0
+    d = json.loads((out / "discovery.json").read_text())
+    assert d["decision"] == "ground_friction" and d["identified"] is True
+    assert {s["name"] for s in d["ranking"]["scores"]} == {"ground_friction", "air_drag"}
+    for f in ("report.md", "report.html", "residual_heatmap.png", "residual_split.png", "gap.png"):
+        assert (out / f).is_file()
+    assert "ground_friction" in (out / "report.html").read_text()
+
+
+@pytest.mark.slow
+def test_discovered_effect_as_a_module(runs):
+    """The decision exported as an InversePhysicsModule with the effect predicts what the
+    discovery's final refit predicts."""
+    res = runs("ground_friction").result
+    new = res.to_module()
+    assert new.estimate()["effects"]["ground_friction"]["mu"] == pytest.approx(res.final.strengths["ground_friction.mu"], rel=1e-5)
+    ours = res.final.lib.predict(res.final.q)["positions"]
+    theirs = new.predict_trajectory()["positions"]
+    assert torch.allclose(ours, theirs, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------- units
+def test_augmented_material_is_exact_at_zero_and_density_rescales_stress():
+    from toolkit.discovery.materials import AugmentedMaterial
+    from toolkit.mpm import MPMSimulator, SimConfig
+
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    x0 = ijk.float() * 0.02 + torch.tensor([0.0, 0.1, 0.0])
+    cfg = SimConfig(dx=0.04, substeps=20, boundary="slip")
+    v0 = torch.tensor([1.0, -0.5, 0.0])
+    plain = MPMSimulator("neo_hookean", cfg).rollout(x0, v0, torch.tensor([3e4, 0.3]), n_frames=3).positions
+    aug = AugmentedMaterial("neo_hookean")
+    assert aug.param_names == ["E", "nu", "damping", "log_density_ratio"]
+    sim = MPMSimulator(aug, cfg)
+    same = sim.rollout(x0, v0, aug.pack({"E": 3e4, "nu": 0.3}), n_frames=3).positions
+    assert torch.equal(plain, same)
+    # twice the density = half the stress: E twice as large moves the same way
+    dense = sim.rollout(x0, v0, aug.pack({"E": 6e4, "nu": 0.3, "log_density_ratio": math.log(2.0)}), n_frames=3).positions
+    assert torch.allclose(plain, dense, atol=1e-6)
+    damped = sim.rollout(x0, v0, aug.pack({"E": 3e4, "nu": 0.3, "damping": 30.0}), n_frames=3).positions
+    assert (damped - plain).abs().max() > 1e-4
+
+
+def test_hermite_interpolation_hits_frames_and_follows_velocity():
+    from toolkit.discovery.library import _hermite
+
+    t = torch.linspace(0, 3, 4)
+    pos = (0.5 * t**2).reshape(4, 1, 1).repeat(1, 2, 3)  # x = t^2 / 2 in frames, frame_dt = 1
+    vel = t.reshape(4, 1, 1).repeat(1, 2, 3)
+    assert torch.allclose(_hermite(pos, vel, torch.tensor([0.0, 1.0, 2.0]), 1.0), pos[:3])
+    assert torch.allclose(_hermite(pos, vel, torch.tensor([1.5]), 1.0), torch.full((1, 2, 3), 0.5 * 1.5**2))
+    s = torch.tensor([1.0], requires_grad=True)
+    _hermite(pos, vel, s, 1.0)[0, 0, 0].backward()
+    assert s.grad.item() == pytest.approx(1.0)  # dx/dt = v(1) = 1
+
+
+def test_candidate_library():
+    from toolkit.discovery.candidates import LIBRARY, candidate, library
+
+    names = [c.name for c in LIBRARY]
+    assert names == ["ground_friction", "air_drag", "extra_acceleration", "wall", "internal_damping", "plastic_yield", "timing",
+                     "stiffness_gradient", "density", "camera_pose"]
+    assert {c.name for c in LIBRARY if c.control} == {"density", "camera_pose"}
+    assert {c.name for c in LIBRARY if c.search} == {"wall", "plastic_yield"}
+    assert candidate("plastic_yield").applicable("neo_hookean") and not candidate("plastic_yield").applicable("plasticine")
+    assert not candidate("air_drag").applicable("neo_hookean", ["air_drag"])
+    assert candidate("camera_pose").parameter_names(2) == [f"camera_pose.c{c}.{a}" for c in range(2) for a in "xyz"]
+    with pytest.raises(ValueError, match="unknown discovery candidate"):
+        library(["friction"])
+
+
+def test_thresholds_calibration_and_decision_rule(tmp_path):
+    from toolkit.discovery.calibration import DEFAULT_THRESHOLDS, Thresholds, calibrate, null_statistics
+    from toolkit.discovery.workflow import decide
+
+    assert DEFAULT_THRESHOLDS.n_null > 0 and "null" in DEFAULT_THRESHOLDS.source
+    def v(val, fit=0.01, control=False, worst=0.0):
+        return {"validation": val, "fit": fit, "control": control, "worst": worst}
+
+    nulls = [{"validation": {"base": v(0.0), "air_drag": v(0.01), "camera_pose": v(0.03, 0.03, True)}},
+             {"validation": {"base": v(0.0), "timing": v(-0.02), "camera_pose": v(0.002, 0.5, True)}},  # not reported anyway
+             {"validation": {"base": v(0.0), "camera_pose": v(0.2, 0.5, True, worst=-0.3)}}]  # hurts a component: idem
+    stats = [null_statistics(n) for n in nulls]
+    assert stats[0] == {"validation": 0.01, "fit": 0.01, "camera": 0.03, "camera_validation": 0.03, "camera_worst": 0.0}
+    thr = calibrate(stats)
+    assert thr.validation == pytest.approx(1.25 * 0.01 + 0.01) and thr.camera == pytest.approx(1.25 * 0.03 + 0.05)
+    assert Thresholds.load(thr.save(tmp_path / "t.json")) == thr
+    dofs = {"ground_friction": 1, "air_drag": 2, "extra_acceleration": 3, "camera_pose": 9}
+    # within 20 % of the best: the fewest strength parameters wins, the others are indistinguishable
+    val = {"base": v(0.0), "extra_acceleration": v(0.40), "ground_friction": v(0.36), "air_drag": v(0.20)}
+    assert decide(val, dofs, thr) == ("ground_friction", "physics", ["extra_acceleration"])
+    # a candidate that makes one validation component much worse does not pass
+    val["ground_friction"] = v(0.36, worst=-0.5)
+    assert decide(val, dofs, thr)[0] == "extra_acceleration"
+    # nothing passes, but the camera-pose control explains the fit and the other views: an observation error
+    val = {"base": v(0.0), "air_drag": v(0.001), "camera_pose": v(0.1, 0.3, True)}
+    assert decide(val, dofs, thr) == ("camera_pose", "observation", [])
+    for cam in (v(0.1, 0.01, True), v(0.0, 0.3, True)):  # too small a fit gain, or no help on held-out data
+        val["camera_pose"] = cam
+        assert decide(val, dofs, thr) == (None, "none", [])
+
+
+def test_run_folder_errors(tmp_path):
+    from toolkit.discovery import load_fitted_module
+
+    with pytest.raises(FileNotFoundError, match="physics_input.pt does not exist"):
+        load_fitted_module(tmp_path)
+    with pytest.raises(ValueError, match="give a run folder"):
+        load_fitted_module(input_path=tmp_path / "x.pt")

@@ -1,0 +1,326 @@
+"""Cheap ranking of the candidates: a projected score test at zero strength.
+
+Method (a Gauss-Newton / Rao score test). Linearize the residual vector ``r`` of the base model
+(:meth:`~toolkit.discovery.library.LibraryModel.residuals`) at the fitted base point ``q0``
+(every strength zero) with a forward-difference Jacobian ``J = [J_theta, J_s]`` (base
+parameters, candidate strengths; one rollout per column, in step units). Let ``P`` be the
+orthogonal projector that removes the span of ``J_theta`` (the base parameters' directions,
+from an SVD). Then
+
+* ``r_perp = P r`` is the residual left after a Gauss-Newton refit of the base parameters
+  alone, and ``J_perp = P J_s`` is what each strength can change that the base parameters
+  cannot: a strength whose effect is mimicked by the base (density by E) has ``J_perp ~ 0``;
+* a candidate ``c`` with strength columns ``S_c`` is scored by the loss drop it predicts when
+  added and refitted together with the base parameters,
+  ``drop_c = 0.5 (|r_perp|^2 - min_d |r_perp + J_perp[:, S_c] d|^2)`` with ``d`` inside the
+  strength bounds (``scipy.optimize.lsq_linear``), reported relative to ``0.5 |r|^2``;
+  ``d`` is the predicted strength. This is the score test: its numerator ``J_perp^T r_perp`` is
+  the loss gradient with respect to the strengths at zero with the base directions projected
+  out; ``J_perp^T J_perp`` (the Schur complement of the Gauss-Newton matrix) normalizes it.
+* the autodiff gradient of the fit's own loss (L1/SSIM + Chamfer) with respect to each
+  strength at zero is reported next to it, raw and projected
+  (``g_s - beta^T g_theta`` with ``beta`` the least-squares coefficients of ``J_s`` on ``J_theta``).
+
+Candidates whose gradient at zero is uninformative until an extra parameter is chosen are
+searched (``wall``: normal among :data:`~toolkit.discovery.candidates.WALL_NORMALS` and three
+offsets around the farthest the observed body went that way, a rigid wall; ``plastic_yield``: yield
+stress on a grid of yield strains): each grid point is one rollout ``r_j``, scored as
+``0.5 (|P r_ref|^2 - |P r_j|^2)`` (same linearized base refit; ``r_ref`` the candidate at
+"absent").
+
+Confusability: for candidates ``a`` and ``b``, the share of ``a``'s predicted residual change
+``J_perp[:, S_a] d_a`` that ``b``'s columns can reproduce (1 = indistinguishable from the data,
+0 = orthogonal). The most confusable partner of each candidate is reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from toolkit.discovery.candidates import WALL_NORMALS
+from toolkit.discovery.library import LibraryModel
+
+__all__ = ["CandidateScore", "Ranking", "rank_candidates", "YIELD_STRAINS"]
+
+log = logging.getLogger(__name__)
+
+#: yield strains tau_Y / E scanned by the plastic-yield search.
+YIELD_STRAINS = (0.003, 0.01, 0.03, 0.1)
+#: wall offsets scanned beyond the observed extreme, in particle spacings.
+WALL_OFFSETS = (-0.5, 0.5, 1.5)
+
+
+@dataclass
+class CandidateScore:
+    """The ranking of one candidate.
+
+    Attributes:
+        name: candidate name.
+        control: a control (must not be reported as physics).
+        dof: number of strength parameters.
+        score: predicted relative drop of the Gauss-Newton objective when the candidate is added
+            and refitted with the base parameters (``drop / (0.5 |r|^2)``).
+        predicted_strength: ``{parameter: value}`` at the predicted optimum (physical units).
+        gradient: autodiff gradient of the fit loss with respect to each strength at zero, per
+            step of the parameter (loss units).
+        projected_gradient: the same with the base parameters' directions projected out.
+        search: the chosen extra parameters of a searched candidate (wall normal and offset,
+            log10 yield stress), else ``None``.
+        partner: the most confusable other candidate, and ``overlap`` its share of this
+            candidate's predicted residual change (0..1).
+        rank: 1-based position.
+    """
+
+    name: str
+    control: bool
+    dof: int
+    score: float
+    predicted_strength: dict[str, float] = field(default_factory=dict)
+    gradient: dict[str, float] = field(default_factory=dict)
+    projected_gradient: dict[str, float] = field(default_factory=dict)
+    search: Optional[dict] = None
+    partner: Optional[str] = None
+    overlap: float = 0.0
+    rank: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Ranking:
+    """All candidates' scores, best first, plus what the confirmation needs.
+
+    Attributes:
+        scores: one :class:`CandidateScore` per candidate, sorted by score.
+        objective: ``0.5 |r|^2`` at the base point.
+        base_refit_objective: the predicted objective after refitting the base alone.
+        overlaps: ``{a: {b: overlap}}`` (see the module docstring).
+        seconds: wall-clock time of the ranking.
+    """
+
+    scores: list[CandidateScore]
+    objective: float
+    base_refit_objective: float
+    overlaps: dict[str, dict[str, float]]
+    seconds: float = 0.0
+
+    def get(self, name: str) -> CandidateScore:
+        for s in self.scores:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.scores]
+
+    def to_dict(self) -> dict:
+        return {"scores": [s.to_dict() for s in self.scores], "objective": self.objective,
+                "base_refit_objective": self.base_refit_objective, "overlaps": self.overlaps, "seconds": self.seconds}
+
+
+def _projector(J_theta: np.ndarray, tol: float = 1e-7) -> np.ndarray:
+    """Orthonormal basis (R, k) of the span of ``J_theta`` (columns with tiny singular values dropped)."""
+    if J_theta.shape[1] == 0:
+        return np.zeros((J_theta.shape[0], 0))
+    U, S, _ = np.linalg.svd(J_theta, full_matrices=False)
+    keep = S > tol * max(S.max(), 1e-30)
+    return U[:, keep]
+
+
+def _perp(Q: np.ndarray, X: np.ndarray) -> np.ndarray:
+    return X - Q @ (Q.T @ X)
+
+
+def _bounded_lsq(A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """argmin_d |A d - b|^2 with lo <= d <= hi."""
+    from scipy.optimize import lsq_linear
+
+    if A.shape[1] == 0 or not np.any(A):
+        return np.zeros(A.shape[1])
+    lo = np.where(np.isfinite(lo), lo, -np.inf)
+    hi = np.where(np.isfinite(hi), hi, np.inf)
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    res = lsq_linear(A / scale, b, bounds=(lo * scale, hi * scale), method="bvls" if A.shape[1] <= 12 else "trf")
+    return res.x / scale
+
+
+def rank_candidates(lib: LibraryModel, q0: Optional[np.ndarray] = None, plastic_lib: Optional[LibraryModel] = None,
+                    search_wall: bool = True) -> tuple[Ranking, dict]:
+    """Rank every candidate of ``lib`` at ``q0`` (default ``lib.q0``).
+
+    Args:
+        lib: the library model (its geometric weight already set).
+        q0: base point (all strengths zero).
+        plastic_lib: the ``plastic_yield`` variant (:class:`LibraryModel` with ``plastic=``),
+            scanned when given.
+        search_wall: scan wall normals and offsets when the wall is a candidate.
+
+    Returns:
+        ``(Ranking, state)``; ``state`` keeps the Jacobian pieces and the search results
+        (``wall``: (index, offset); ``yield``: log10 yield stress) for the confirmation.
+    """
+    import time
+
+    t0 = time.time()
+    q0 = lib.q0.copy() if q0 is None else np.asarray(q0, np.float64)
+    lib.assign(q0)
+    r0 = lib.residuals(q0)
+    r = r0.numpy()
+    L0 = 0.5 * float(r @ r)
+    base = lib.base_names
+    strengths = [n for n in lib.names if n not in base and not n.startswith("wall.") and not n.startswith("plastic_yield.")]
+    J_theta = lib.jacobian(q0, base, r0)
+    J_s = lib.jacobian(q0, strengths, r0)
+    Q = _projector(J_theta)
+    r_perp = _perp(Q, r)
+    L_base = 0.5 * float(r_perp @ r_perp)
+    J_perp = _perp(Q, J_s)
+    col = {n: i for i, n in enumerate(strengths)}
+    # autodiff gradient of the fit loss, in loss units per step
+    try:
+        grad = lib.gradient(q0) * lib.steps
+    except Exception as exc:  # pragma: no cover - a failed backward must not stop the ranking
+        log.warning("autodiff gradient failed (%s); reporting the Gauss-Newton gradient only", exc)
+        grad = np.full(len(lib.names), np.nan)
+    gi = lib.idx(base)
+    beta, *_ = np.linalg.lstsq(J_theta, J_s, rcond=None) if J_theta.shape[1] else (np.zeros((0, J_s.shape[1])),)
+    proj_grad = grad[lib.idx(strengths)] - (beta.T @ grad[gi] if len(gi) else 0.0)
+
+    scores: list[CandidateScore] = []
+    changes: dict[str, np.ndarray] = {}
+    spans: dict[str, np.ndarray] = {}
+    state: dict = {"r0": r0, "objective": L0, "base_refit_objective": L_base}
+    for c in lib.candidates:
+        if c.search:
+            continue
+        names = lib.params_of(c.name)
+        cols = [col[n] for n in names]
+        A = J_perp[:, cols]
+        ii = lib.idx(names)
+        lo = (lib.low[ii] - q0[ii]) / lib.steps[ii]
+        hi = (lib.high[ii] - q0[ii]) / lib.steps[ii]
+        d = _bounded_lsq(A, -r_perp, lo, hi)
+        res = r_perp + A @ d
+        drop = 0.5 * (float(r_perp @ r_perp) - float(res @ res))
+        changes[c.name] = A @ d
+        spans[c.name] = A
+        scores.append(CandidateScore(
+            name=c.name, control=c.control, dof=len(names), score=max(drop, 0.0) / max(L0, 1e-30),
+            predicted_strength={n: float(q0[i] + d[k] * lib.steps[i]) for k, (n, i) in enumerate(zip(names, ii))},
+            gradient={n: float(grad[lib.index_of[n]]) for n in names},
+            projected_gradient={n: float(proj_grad[col[n]]) for n in names},
+        ))
+    # ------------------------------------------------------------------ searched candidates
+    if search_wall and "wall" in lib.names_of:
+        best = _wall_search(lib, q0, Q, r_perp, L0)
+        if best is not None:
+            sc, change, span, where = best
+            scores.append(sc)
+            changes["wall"], spans["wall"] = change, span
+            state["wall"] = where
+    if plastic_lib is not None:
+        best = _yield_search(plastic_lib, Q, L0)
+        if best is not None:
+            sc, change, span, log_tau = best
+            scores.append(sc)
+            changes["plastic_yield"], spans["plastic_yield"] = change, span
+            state["yield"] = log_tau
+    # ------------------------------------------------------------------ confusability
+    overlaps: dict[str, dict[str, float]] = {}
+    bases = {n: _projector(A, 1e-6) for n, A in spans.items()}
+    for a, da in changes.items():
+        na = float(np.linalg.norm(da))
+        overlaps[a] = {}
+        for b, Qb in bases.items():
+            if b == a:
+                continue
+            overlaps[a][b] = float(np.linalg.norm(Qb.T @ da) / na) if na > 0 else 0.0
+    for s in scores:
+        o = overlaps.get(s.name, {})
+        if o:
+            s.partner = max(o, key=o.get)
+            s.overlap = o[s.partner]
+    scores.sort(key=lambda s: -s.score)
+    for i, s in enumerate(scores):
+        s.rank = i + 1
+    state.update(J_theta=J_theta, Q=Q)
+    return Ranking(scores, L0, L_base, overlaps, time.time() - t0), state
+
+
+def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.ndarray, L0: float):
+    """Rigid walls just beyond the farthest the *observed* body (stage-0 surfaces) reached in each
+    horizontal direction it moved; the best by predicted drop."""
+    frames = lib.train_frames()
+    obs = [lib.input.surfaces[f].double().numpy() for f in frames]
+    obs = [o for o in obs if len(o)]
+    if len(obs) < 2:
+        return None
+    spacing = float(lib.module.input.particle_volume) ** (1 / 3)
+    base_norm = float(r_perp @ r_perp)
+    best = None
+    i_s = lib.index_of["wall.strength"]
+    for k, n in enumerate(WALL_NORMALS):
+        proj = [o @ np.asarray(n) for o in obs]
+        m0, m_min = float(proj[0].min()), float(min(p.min() for p in proj))
+        if m0 - m_min < 2 * spacing:
+            continue  # the body did not move toward this side
+        for f in WALL_OFFSETS:
+            offset = m_min - f * spacing
+            lib.set_wall(k, offset)
+            q = q0.copy()
+            q[i_s] = 1.0
+            try:
+                rj = _perp(Q, lib.residuals(q).numpy())
+            except Exception as exc:  # a failed rollout is no evidence either way
+                log.info("wall search at normal %s offset %.3f failed: %s", n, offset, exc)
+                continue
+            drop = 0.5 * (base_norm - float(rj @ rj))
+            if best is None or drop > best[0]:
+                best = (drop, k, offset, rj)
+    if best is None:
+        return None
+    drop, k, offset, rj = best
+    lib.set_wall(k, offset)
+    change = rj - r_perp
+    sc = CandidateScore(name="wall", control=False, dof=1, score=max(drop, 0.0) / max(L0, 1e-30),
+                        predicted_strength={"wall.strength": 1.0 if drop > 0 else 0.0},
+                        search={"normal": list(WALL_NORMALS[k]), "offset": offset, "index": k})
+    return sc, change, change[:, None], (k, offset)
+
+
+def _yield_search(plib: LibraryModel, Q: np.ndarray, L0: float):
+    """Plasticine at a grid of yield stresses against plasticine without yield; the best by drop."""
+    q = plib.q0.copy()
+    i = plib.index_of["plastic_yield.log10_yield_stress"]
+    e = plib.mref
+    plib.assign(q)
+    q[i] = 12.0
+    ref = _perp(Q, plib.residuals(q).numpy()) if Q.shape[0] else None
+    ref_norm = float(ref @ ref)
+    best = None
+    for strain in YIELD_STRAINS:
+        q[i] = math.log10(strain * e)
+        try:
+            rj = _perp(Q, plib.residuals(q).numpy())
+        except Exception as exc:  # a failed rollout (CFL, NaN) is no evidence either way
+            log.info("yield search at strain %g failed: %s", strain, exc)
+            continue
+        drop = 0.5 * (ref_norm - float(rj @ rj))
+        if best is None or drop > best[0]:
+            best = (drop, q[i], rj)
+    if best is None:
+        return None
+    drop, log_tau, rj = best
+    change = rj - ref
+    sc = CandidateScore(name="plastic_yield", control=False, dof=1, score=max(drop, 0.0) / max(L0, 1e-30),
+                        predicted_strength={"plastic_yield.log10_yield_stress": float(log_tau)},
+                        search={"log10_yield_stress": float(log_tau), "yield_strain": float(10 ** log_tau / e)})
+    return sc, change, change[:, None], float(log_tau)
