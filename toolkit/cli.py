@@ -22,6 +22,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("toolkit.commands.run", "the whole pipeline for one scene: stage 0, continuum, strategy, prediction, metrics, report"),
     "generate": ("toolkit.synthetic.commands", "write synthetic scenes (PAC-NeRF layout) with honest ground truth"),
     "materials": ("toolkit.commands.info", "list materials, renderers, strategies and effects with their parameters"),
+    "evaluate": ("toolkit.commands.evaluate", "re-evaluate a fitted run folder: future prediction, all metrics, report"),
+    "benchmark": ("toolkit.benchmark.commands", "compare strategies over a suite of scenes, in parallel; paper-style tables"),
+    "view": ("toolkit.commands.view", "show predicted and ground-truth particles over time (window, or PNG/MP4 headless)"),
 }
 
 

@@ -269,11 +269,7 @@ def _restore_finished_fit(module, physics_dir: Path) -> bool:
 
 def run_pipeline(settings: RunSettings) -> dict:
     """Run every step for one scene; returns (and writes) ``summary.json``."""
-    from toolkit.evaluation import evaluate_module
-    from toolkit.mpm import SimConfig
-    from toolkit.physics import InversePhysicsModule
     from toolkit.physics.fit import fit_physics
-    from toolkit.report import write_report
 
     s = settings
     s.validate()
@@ -288,29 +284,45 @@ def run_pipeline(settings: RunSettings) -> dict:
     device = _device(s.device)
 
     input_path = build_physics_input(s, run, timings)
-    sim = SimConfig(**{"auto_dt_halving": True, **s.sim})
-    curriculum = resolve_curriculum(s.curriculum, s.curriculum_options)
-    module = InversePhysicsModule(str(input_path), material=s.material, material_options=s.material_options,
-                                  initial_params=s.initial_params, optimize_params=s.optimize_params,
-                                  curriculum=curriculum, renderer=s.renderer, sim=sim,
-                                  lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed)
+    module = make_physics_module(s, input_path)
     t = time.perf_counter()
     if not _restore_finished_fit(module, run / "physics"):
         fit_physics(module, run / "physics", resume="last", checkpoint_every=s.checkpoint_every, accelerator=_accelerator(device))
     timings["physics_s"] = time.perf_counter() - t
+    timings["total_s"] = time.perf_counter() - t_all
+    return evaluate_and_report(module, run, s, timings)
 
-    t = time.perf_counter()
-    module = module.to(device)
-    evaluation = evaluate_module(module, run / "evaluation")
-    timings["evaluation_s"] = time.perf_counter() - t
+
+def make_physics_module(s: RunSettings, input_path: str | Path):
+    """The :class:`~toolkit.physics.InversePhysicsModule` of a run's settings and physics input."""
+    from toolkit.mpm import SimConfig
+    from toolkit.physics import InversePhysicsModule
+
+    sim = SimConfig(**{"auto_dt_halving": True, **s.sim})
+    return InversePhysicsModule(str(input_path), material=s.material, material_options=s.material_options,
+                                initial_params=s.initial_params, optimize_params=s.optimize_params,
+                                curriculum=resolve_curriculum(s.curriculum, s.curriculum_options), renderer=s.renderer,
+                                sim=sim, lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed)
+
+
+def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dict:
+    """Future prediction and metrics (``run/evaluation``), figures and video (``run/report``), and
+    the summary (written to ``run/summary.json`` and returned)."""
     import numpy as np
 
+    from toolkit.evaluation import evaluate_module
+    from toolkit.report import write_report
+
+    t = time.perf_counter()
+    module = module.to(_device(s.device))
+    evaluation = evaluate_module(module, run / "evaluation")
+    timings["evaluation_s"] = time.perf_counter() - t
     renders = np.load(run / "evaluation" / "renders.npz")["renders"].transpose(1, 0, 2, 3, 4)
     inp = module.input
     cams = s.report_cameras or (inp.train_cameras[:2] + inp.held_out_cameras[:2])
     files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams)
-    timings["total_s"] = time.perf_counter() - t_all
+    timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"]
     summary = _summary(module, evaluation, timings, files)
     (run / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

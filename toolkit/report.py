@@ -4,7 +4,11 @@
   iteration, with the curriculum's stages shaded (as the paper's appendix figure);
 * :func:`plot_per_frame`: Chamfer/EMD/PSNR per frame, training and future frames marked;
 * :func:`comparison_video`: ground truth and prediction side by side for a few cameras, every
-  frame (MP4, with a PNG strip of the future frames).
+  frame (MP4, with a PNG strip of the future frames);
+* :func:`plot_evaluation_trajectories`: future-state EMD and PSNR and the parameter errors
+  against the iteration, stages shaded (the paper's appendix figure), from the ``eval/...``
+  records of :class:`~toolkit.physics.periodic_eval.PeriodicEvaluation` (written by
+  :func:`write_report` when the history has them).
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report"]
+__all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report", "plot_evaluation_trajectories",
+           "compressed_axis"]
 
 _LOG_PARAMS = {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"}
 
@@ -173,4 +178,105 @@ def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Seque
     if gt_images is not None and pred_images is not None:
         files += comparison_video(gt_images[list(cameras)], pred_images[list(cameras)], evaluation["n_train"],
                                   report / "prediction_vs_truth.mp4")
+    if any(k.startswith("eval/") for h in history for k in h):
+        files.append(plot_evaluation_trajectories(history, curriculum, report / "evaluation_trajectories.png"))
     return files
+
+
+def compressed_axis(curriculum: Sequence[dict], cap: Optional[int] = None):
+    """A piecewise-linear map from iterations to plot coordinates that shrinks long stages.
+
+    Each stage keeps its width when it has at most ``cap`` iterations and is squeezed to ``cap``
+    otherwise (the paper rescales its 40k-iteration stage 0 the same way), so a 40k-iteration
+    appearance stage does not flatten the stages before it.
+
+    Args:
+        curriculum: stages with ``start`` and ``end`` (:meth:`strategies.Strategy.describe`).
+        cap: widest stage in plot units (default: the longest stage of at most 1000 iterations,
+            at least 100).
+
+    Returns:
+        ``(to_plot, compressed)``: a function mapping an array of iterations to plot
+        coordinates, and whether any stage was squeezed.
+    """
+    spans = [(int(s["start"]), int(s["end"])) for s in curriculum]
+    if cap is None:
+        short = [e - b for b, e in spans if e - b <= 1000]
+        cap = max(100, max(short) if short else 100)
+    widths = [min(e - b, cap) for b, e in spans]
+    compressed = any(e - b > cap for b, e in spans)
+    offsets = np.concatenate([[0.0], np.cumsum(widths)])
+
+    def to_plot(steps):
+        x = np.asarray(steps, dtype=float)
+        out = np.array(x, dtype=float)
+        for i, (b, e) in enumerate(spans):
+            inside = (x >= b) & (x <= e) if i == len(spans) - 1 else (x >= b) & (x < e)
+            scale = widths[i] / max(1, e - b)
+            out[inside] = offsets[i] + (x[inside] - b) * scale
+        if spans:
+            out[x > spans[-1][1]] = offsets[-1] + (x[x > spans[-1][1]] - spans[-1][1])
+        return out
+
+    return to_plot, compressed
+
+
+def _eval_panels(history: Sequence[dict]) -> list[tuple[str, list[str]]]:
+    keys = {k for h in history for k in h}
+    panels = []
+    if keys & {"eval/emd_future", "eval/emd_x0"}:
+        panels.append(("EMD (m), future frames", [k for k in ("eval/emd_future", "eval/emd_x0") if k in keys]))
+    if keys & {"eval/cd_future", "eval/cd_x0"}:
+        panels.append(("Chamfer distance (x1e3), future frames", [k for k in ("eval/cd_future", "eval/cd_x0") if k in keys]))
+    if "eval/psnr_future" in keys:
+        panels.append(("PSNR (dB), future frames, held-out camera", ["eval/psnr_future"]))
+    errors = sorted(k for k in keys if k.startswith("error/") and k != "error/v0")
+    if errors:
+        panels.append(("material parameter error (MAE)", errors))
+    if "error/v0" in keys:
+        panels.append(("initial velocity error (MAE, m/s)", ["error/v0"]))
+    return panels
+
+
+def plot_evaluation_trajectories(history: Sequence[dict], curriculum: Sequence[dict], path: str | Path,
+                                 cap: Optional[int] = None) -> Path:
+    """Future EMD/CD and PSNR and the parameter errors against the iteration, stages shaded.
+
+    The EMD/CD/PSNR points are the iterations where
+    :class:`~toolkit.physics.periodic_eval.PeriodicEvaluation` ran; parameter errors are drawn at
+    every iteration. Stages longer than ``cap`` iterations are drawn squeezed
+    (:func:`compressed_axis`), and the stage boundaries are labelled with their iteration.
+    """
+    plt = _plt()
+    to_plot, compressed = compressed_axis(curriculum, cap)
+    panels = _eval_panels(history)
+    ncols = min(3, max(1, len(panels)))
+    nrows = max(1, math.ceil(len(panels) / ncols))
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.0 * nrows), squeeze=False)
+    shaded = [{**s, "start": float(to_plot([s["start"]])[0]), "end": float(to_plot([s["end"]])[0])} for s in curriculum]
+    ticks = sorted({int(s["start"]) for s in curriculum} | {int(s["end"]) for s in curriculum})
+    for ax, (title, keys) in zip(axes.flat, panels):
+        _shade_stages(ax, shaded)
+        for key in keys:
+            pts = [(h["step"], h[key]) for h in history if isinstance(h.get(key), (int, float)) and h.get(key) is not None]
+            if not pts:
+                continue
+            steps, vals = zip(*pts)
+            marker = "o" if key.startswith("eval/") else None
+            label = {"eval/emd_x0": "frame 0", "eval/cd_x0": "frame 0", "eval/emd_future": "future",
+                     "eval/cd_future": "future", "eval/psnr_future": "future"}.get(key, key.split("/", 1)[1])
+            ax.plot(to_plot(steps), vals, marker=marker, ms=3, label=label, ls="--" if key.endswith("_x0") else "-")
+        ax.set_title(title, fontsize=9, pad=12)
+        ax.set_xticks(to_plot(ticks))
+        ax.set_xticklabels([str(t) for t in ticks], fontsize=7)
+        ax.set_xlabel("iteration" + (" (long stages squeezed)" if compressed else ""), fontsize=8)
+        ax.tick_params(labelsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc="best")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -329,7 +329,8 @@ class InversePhysicsModule(pl.LightningModule):
         self._restored_grid = state.get("grid")
         self._sim = None
         saved = state.get("curriculum")
-        if saved is not None and saved != self.curriculum.describe(self.material.registry_name or None):
+        unnamed = lambda stages: [{k: v for k, v in d.items() if k != "name"} for d in stages]  # noqa: E731
+        if saved is not None and unnamed(saved) != unnamed(self.curriculum.describe(self.material.registry_name or None)):
             log.warning("the checkpoint was written with a different curriculum; continuing with the current one")
 
     def training_step(self, batch, batch_idx):

@@ -1,0 +1,361 @@
+"""`projo4d benchmark`, `projo4d evaluate`, `projo4d view` and the periodic evaluation (CPU, tiny).
+
+One small benchmark (2 generated elastic scenes x 2 strategies, oracle geometry, 32 px, a few
+iterations, 2 worker processes) is run once for the module and inspected by several tests.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+
+from toolkit.cli import main
+
+pytestmark = pytest.mark.xdist_group("benchmark")
+
+SUITE_OVERRIDES = dict(width=32, height=32, n_frames=6, n_train_frames=5, dx=0.04, particle_spacing=0.01, substeps=80,
+                       supersample=1, ground_plane=False)
+FAST = ["--size", "small", "--geometry", "oracle", "--sim", '{"dx": 0.04, "substeps": 30}', "--stage1-iterations", "3",
+        "--stage2-iterations", "4", "--appearance-iterations", "2", "--device", "cpu", "--periodic-eval", "2"]
+
+
+def _events(text: str) -> list[dict]:
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("{") and '"event"' in line:
+            out.append(json.loads(line))
+    return out
+
+
+@pytest.fixture(scope="module")
+def suite(tmp_path_factory) -> Path:
+    from toolkit.synthetic import generate_suite
+
+    root = tmp_path_factory.mktemp("bench_suite")
+    generate_suite(root, families=["neo_hookean"], scenes_per_family=2, seed=0, size="small", progress=False,
+                   spec_overrides=SUITE_OVERRIDES)
+    return root
+
+
+@pytest.fixture(scope="module")
+def bench(suite, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "b"
+    args = ["benchmark", "--suite", str(suite), "--out", str(out), "--strategies", "sequential", "progressive",
+            "--workers", "2", *FAST]
+    t = time.perf_counter()
+    rc = main(args)
+    return {"out": out, "args": args, "rc": rc, "wall_s": time.perf_counter() - t}
+
+
+# ------------------------------------------------------------------------------------ planning
+def test_plan_shares_stage0_across_strategies(suite):
+    from toolkit.benchmark import BenchmarkSpec, plan_benchmark, scenes_from_suite
+
+    scenes = scenes_from_suite(suite)
+    spec = BenchmarkSpec(scenes, ["sequential", "joint", "progressive"], cameras=[3, 2], size="small",
+                         overrides={"geometry": "oracle"})
+    jobs = plan_benchmark(spec, "/tmp/plan_only")
+    prepares = [j for j in jobs if j.kind == "prepare"]
+    fits = [j for j in jobs if j.kind == "fit"]
+    assert len(prepares) == 2 * 2 and len(fits) == 2 * 2 * 3
+    for f in fits:
+        (dep,) = f.depends
+        prep = next(p for p in prepares if p.id == dep)
+        assert (prep.scene, prep.cameras) == (f.scene, f.cameras)
+        assert f.extra["physics_input"] == str(Path(prep.folder) / "physics_input.pt")
+    # every strategy of a scene and camera count reads the same file
+    shared = {(f.scene, f.cameras): set() for f in fits}
+    for f in fits:
+        shared[(f.scene, f.cameras)].add(f.extra["physics_input"])
+    assert all(len(v) == 1 for v in shared.values())
+    # the stage-0 job does not depend on the strategies or their iterations; the fits do
+    other = BenchmarkSpec(scenes, ["progressive"], cameras=[3, 2], size="small", overrides={"geometry": "oracle"},
+                          iterations={"stage2_iterations": 7})
+    jobs2 = {j.id: j for j in plan_benchmark(other, "/tmp/plan_only")}
+    for p in prepares:
+        assert jobs2[p.id].fingerprint == p.fingerprint
+    f1 = next(j for j in fits if j.strategy == "progressive")
+    assert jobs2[f1.id].fingerprint != f1.fingerprint
+    assert jobs2[f1.id].settings["curriculum_options"]["stage2_iterations"] == 7
+    # 3 views are the sparse protocol; 2 views a nested subset
+    assert next(p for p in prepares if p.cameras == 3).settings["cameras"] == "sparse"
+    assert next(p for p in prepares if p.cameras == 2).settings["cameras"] == [1, 5]
+
+
+def test_camera_subsets_and_strategy_parsing():
+    from toolkit.benchmark import BenchmarkError, BenchmarkSpec, SceneEntry, camera_subset, parse_strategy
+    from toolkit.benchmark.plan import strategy_options
+
+    assert camera_subset(3, 11) == "sparse" and camera_subset(10, 10) == "all" and camera_subset(1, 11) == [1]
+    four = camera_subset(4, 11)
+    assert len(four) == 4 and {1, 5, 9} <= set(four)
+    e = parse_strategy("xas=XAS:100@3,XASM:150")
+    assert (e.label, e.spec) == ("xas", "XAS:100@3,XASM:150")
+    assert parse_strategy("XAS:5,XASM:5").label == "XAS_5_XASM_5"
+    its = {"stage1_iterations": 10, "stage2_iterations": 20, "appearance_iterations": 0}
+    assert strategy_options(parse_strategy("sequential"), its, "sand") == its
+    assert strategy_options(parse_strategy("joint"), its, "sand") == {"iterations": 30}
+    assert strategy_options(parse_strategy("progressive"), its, "sand") == {"stage1_iterations": 10, "stage2_iterations": 20}
+    with pytest.raises(BenchmarkError, match="unique"):
+        BenchmarkSpec([SceneEntry("a", "/x", "sand")], ["progressive", "progressive"])
+    with pytest.raises(BenchmarkError, match="no option"):
+        strategy_options(parse_strategy("joint", {"cycles": 2}), {}, "sand")
+
+
+# ------------------------------------------------------------------------------------ tables
+def _rec(scene, strategy, cd, emd, e_err, cams=3, material="neo_hookean"):
+    return {"scene": scene, "material": material, "strategy": strategy, "cameras": cams, "curriculum": "X",
+            "metrics": {"cd": cd, "emd": emd, "psnr": 20.0 + cd, "ssim": 0.9, "init_cd": cd / 10},
+            "errors": {"E": e_err, "nu": 0.1, "v0": 0.01, "friction_angle": 3.0}, "optimized": ["E", "nu"]}
+
+
+def test_tables_mean_std_of_known_numbers():
+    from toolkit.benchmark.tables import build_tables, tables_markdown
+
+    records = [_rec("s0", "progressive", 1.0, 0.04, 0.1), _rec("s1", "progressive", 2.0, 0.06, 0.3),
+               _rec("s0", "sequential", 4.0, 0.10, 0.5), _rec("s1", "sequential", 6.0, None, 0.7),
+               _rec("s0", "progressive", 3.0, 0.05, 0.2, cams=1)]
+    t = build_tables(records, strategies=["sequential", "progressive"])
+    main3 = next(x for x in t["tables"] if x["cameras"] == 3)
+    assert [r["strategy"] for r in main3["rows"]] == ["sequential", "progressive"]
+    prog = next(r for r in main3["rows"] if r["strategy"] == "progressive")["values"]
+    assert prog["cd"] == {"mean": 1.5, "std": 0.5, "n": 2}
+    assert prog["emd"]["mean"] == pytest.approx(0.05) and prog["emd"]["std"] == pytest.approx(0.01)
+    assert prog["mae:E"]["mean"] == pytest.approx(0.2) and prog["mae:E"]["std"] == pytest.approx(0.1)
+    seq = next(r for r in main3["rows"] if r["strategy"] == "sequential")["values"]
+    assert seq["emd"] == {"mean": 0.10, "std": 0.0, "n": 1}  # the missing value is left out
+    # columns: the optimized parameters and v0, not fixed ones (friction angle of a non-sand fit)
+    assert [c["key"] for c in main3["columns"]] == ["cd", "emd", "psnr", "ssim", "mae:v0", "mae:E", "mae:nu"]
+    claims = [c for c in t["claims"] if c["metric"] == "cd" and c["cameras"] == 3]
+    assert claims[0]["a_better"] and claims[0]["scene_wins_a"] == 2 and claims[0]["scenes"] == 2
+    (abl,) = t["ablation"]
+    assert abl["cameras"] == [1, 3] and abl["cells"]["progressive|1"]["init_cd"]["mean"] == pytest.approx(0.3)
+    md = tables_markdown(t)
+    assert "| progressive | 2 | **1.500 ± 0.500** |" in md
+    assert "| sequential | 2 | 5.000 ± 1.000 |" in md
+    assert "number of cameras" in md and "Pairwise comparisons" in md
+
+
+# ------------------------------------------------------------------------------------ executors
+def test_local_executor_time_limit_stops_jobs_gracefully(tmp_path):
+    from toolkit.benchmark.runner import LocalExecutor, run_jobs
+
+    events = []
+
+    def emit(event, **fields):
+        events.append({"event": event, **fields})
+        return events[-1]
+
+    jobs = [{"id": f"j{i}", "kind": "fit", "folder": str(tmp_path / f"j{i}"), "fingerprint": "x", "seconds": s, "depends": []}
+            for i, s in enumerate([0.2, 60.0, 60.0])]
+    ex = LocalExecutor(2, fn="tests.bench_helpers:sleepy_job")
+    try:
+        t = time.time()
+        counts = run_jobs(jobs, ex, emit, deadline=time.time() + 8.0, grace=3.0, heartbeat=100, min_start_s=0)
+        took = time.time() - t
+    finally:
+        ex.shutdown()
+    assert took < 12
+    assert counts["done"] == 1 and counts["remaining"] == 2
+    finished = {e["job"]: e for e in events if e["event"] in ("done", "interrupted")}
+    assert finished["j0"]["event"] == "done"
+    # the long jobs were asked to stop (SIGTERM) and returned on their own, in two processes
+    assert {finished[j]["event"] for j in ("j1", "j2") if j in finished} <= {"interrupted"}
+    pids = {e.get("pid") for e in events if e["event"] in ("done", "interrupted") and e.get("pid")}
+    assert len(pids) == 2
+    assert any(e["event"] == "stopping" for e in events)
+
+
+# ------------------------------------------------------------------------------------ the benchmark
+def test_benchmark_runs_jobs_in_two_processes_and_rerun_skips_them(bench, capsys):
+    out = bench["out"]
+    assert bench["rc"] == 0
+    markers = [json.loads(p.read_text()) for p in sorted(out.rglob("job.json"))]
+    assert len(markers) == 2 + 4 and all(m["status"] == "done" for m in markers)
+    pids = {a["pid"] for m in markers for a in m["attempts"]}
+    assert len(pids) == 2  # two worker processes shared the jobs
+    # each strategy's run folder links the scene's one physics_input.pt
+    for run in sorted((out / "runs").glob("neo_hookean/*/cams3/*")):
+        link = run / "physics_input.pt"
+        assert link.is_symlink() and link.resolve() == (out / "scenes" / run.relative_to(out / "runs").parent / "physics_input.pt").resolve()
+    tables = json.loads((out / "tables" / "tables.json").read_text())
+    (t,) = tables["tables"]
+    assert {r["strategy"]: r["n"] for r in t["rows"]} == {"sequential": 2, "progressive": 2}
+    assert math.isfinite(t["rows"][0]["values"]["cd"]["mean"]) and t["rows"][0]["values"]["cd"]["n"] == 2
+    assert (out / "tables" / "tables.md").read_text().count("| progressive |") >= 1
+    assert list((out / "tables").glob("strip_*.png")) and list((out / "tables").glob("trajectories_*.png"))
+    # a rerun finds everything done and trains nothing
+    ckpts = {p: p.stat().st_mtime for p in out.rglob("last.ckpt")}
+    capsys.readouterr()
+    assert main(bench["args"]) == 0
+    events = _events(capsys.readouterr().out)
+    plan = next(e for e in events if e["event"] == "plan")
+    assert plan["to_run"] == 0
+    assert not [e for e in events if e["event"] == "start"]
+    assert {p: p.stat().st_mtime for p in out.rglob("last.ckpt")} == ckpts
+
+
+def test_periodic_evaluation_records_emd_and_psnr_into_history(bench):
+    from toolkit.physics.periodic_eval import evaluation_steps
+
+    run = next((bench["out"] / "runs").glob("neo_hookean/000/cams3/progressive"))
+    history = json.loads((run / "physics" / "history.json").read_text())
+    boundaries = [0, 3, 7]
+    expected = evaluation_steps(boundaries, per_stage=2)
+    assert expected == [1, 2, 3, 5, 7]
+    got = [h["step"] for h in history if "eval/emd_future" in h]
+    assert got == expected
+    for h in history:
+        if "eval/emd_future" in h:
+            assert h["eval/emd_future"] > 0 and math.isfinite(h["eval/psnr_future"]) and h["eval/camera"] == 0
+            assert h["eval/emd_x0"] < h["eval/emd_future"]
+    assert (run / "report" / "evaluation_trajectories.png").stat().st_size > 1000
+
+
+def test_interrupted_fit_resumes_where_it_stopped(suite, tmp_path):
+    from toolkit.benchmark import BenchmarkSpec, run_benchmark, scenes_from_suite
+
+    spec = BenchmarkSpec(scenes_from_suite(suite)[:1], ["progressive"], size="small",
+                         overrides={"geometry": "oracle", "sim": {"dx": 0.04, "substeps": 30}, "device": "cpu"},
+                         iterations={"stage1_iterations": 3, "stage2_iterations": 4}, periodic_eval=None, checkpoint_every=50)
+    events = []
+    first = run_benchmark(spec, tmp_path / "b", workers=1, interrupt_at_step=4, echo=events.append, figures=False)
+    assert not first["complete"] and first["counts"]["remaining"] == 1
+    run = tmp_path / "b" / "runs" / "neo_hookean" / "000" / "cams3" / "progressive"
+    marker = json.loads((run / "job.json").read_text())
+    assert marker["status"] == "interrupted"
+    import torch
+
+    ckpt = torch.load(run / "physics" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ckpt["projo4d"]["curriculum_step"] == 4
+    second = run_benchmark(spec, tmp_path / "b", workers=1, echo=events.append, figures=False)
+    assert second["complete"]
+    assert [e["job"] for e in events if e["event"] == "start"] == [
+        "prepare:neo_hookean/000:cams3", "fit:neo_hookean/000:cams3:progressive", "fit:neo_hookean/000:cams3:progressive"]
+    history = json.loads((run / "physics" / "history.json").read_text())
+    assert [h["step"] for h in history] == list(range(1, 8))
+    marker = json.loads((run / "job.json").read_text())
+    assert marker["status"] == "done" and [a["status"] for a in marker["attempts"]] == ["interrupted", "done"]
+
+
+def test_changed_settings_are_refused_unless_redone(bench, capsys):
+    args = [a for a in bench["args"]]
+    i = args.index("--stage2-iterations")
+    args[i + 1] = "5"
+    with pytest.raises(SystemExit, match="other settings"):
+        main(args + ["--dry-run"])
+
+
+# ------------------------------------------------------------------------------------ evaluate and view
+def test_evaluate_command_re_evaluates_a_run_folder(bench, capsys):
+    run = bench["out"] / "runs" / "neo_hookean" / "001" / "cams3" / "sequential"
+    before = json.loads((run / "evaluation" / "evaluation.json").read_text())
+    import shutil
+
+    shutil.rmtree(run / "evaluation")
+    shutil.rmtree(run / "report")
+    assert main(["evaluate", str(run), "--no-render", "--device", "cpu"]) == 0
+    printed = capsys.readouterr().out
+    assert "Chamfer distance" in printed and "not rendered" in printed and "E" in printed
+    ev = json.loads((run / "evaluation" / "evaluation.json").read_text())
+    assert "images" not in ev and ev["geometry"]["cd_future"] == pytest.approx(before["geometry"]["cd_future"], rel=1e-5)
+    assert (run / "report" / "per_frame.png").is_file() and (run / "report" / "evaluation_trajectories.png").is_file()
+    assert main(["evaluate", str(run), "--json", "--device", "cpu"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["images"]["held_out_cameras"]["psnr_future"] == pytest.approx(before["images"]["held_out_cameras"]["psnr_future"],
+                                                                             rel=1e-4)
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["benchmark"]["strategy"] == "sequential" and summary["future"]["psnr"] is not None
+
+
+def test_view_writes_png_and_mp4_with_the_matplotlib_fallback(bench, capsys):
+    from toolkit.viewer import open3d_offscreen_available
+
+    run = bench["out"] / "runs" / "neo_hookean" / "000" / "cams3" / "progressive"
+    out = run / "view_test"
+    assert main(["view", str(run), "--offscreen", "--out", str(out), "--size", "320x160", "--frames", "0", "5"]) == 0
+    info = json.loads((out / "view.json").read_text())
+    if not open3d_offscreen_available():
+        assert info["backend"] == "matplotlib"
+    for name in ("frame_000.png", "frame_005.png", "strip.png"):
+        assert (out / name).stat().st_size > 2000
+    video = out / "particles.mp4"
+    assert video.is_file() or (out / "particles.gif").is_file()
+    import imageio.v3 as iio
+
+    img = iio.imread(out / "frame_005.png")
+    assert img.shape[:2] == (160, 320) and img.std() > 5
+    assert "rendered with" in capsys.readouterr().out
+
+
+def test_export_bundles_the_results(bench, tmp_path):
+    assert main(["benchmark", "--out", str(bench["out"]), "--tables-only", "--no-figures", "--export", str(tmp_path / "x")]) == 0
+    names = sorted(p.name for p in (tmp_path / "x").iterdir())
+    assert names == ["progress.jsonl", "results.tar.gz", "tables.json", "tables.md"]
+    with tarfile.open(tmp_path / "x" / "results.tar.gz") as tar:
+        members = tar.getnames()
+    assert "runs/neo_hookean/000/cams3/progressive/summary.json" in members
+    assert "runs/neo_hookean/000/cams3/progressive/physics/history.json" in members
+    assert all(os.path.getsize(tmp_path / "x" / n) < 16 * 2**20 for n in names)
+
+
+def test_ray_executor_runs_jobs_and_stops_them_at_the_time_limit(tmp_path):
+    pytest.importorskip("ray")  # optional extra: projo4d[ray]
+    from toolkit.benchmark.runner import RayExecutor, run_jobs
+
+    events = []
+    jobs = [{"id": f"j{i}", "kind": "fit", "folder": str(tmp_path / f"j{i}"), "fingerprint": "x", "seconds": s, "depends": []}
+            for i, s in enumerate([0.2, 0.3, 60.0])]
+    ex = RayExecutor(None, gpus_per_job=0.0, cpus_per_job=1.0, fn="tests.bench_helpers:sleepy_job")
+    try:
+        counts = run_jobs(jobs, ex, lambda e, **f: events.append({"event": e, **f}), deadline=time.time() + 12.0, grace=3.0,
+                          heartbeat=100, min_start_s=0)
+    finally:
+        ex.shutdown()
+    assert counts["done"] == 2 and counts["remaining"] == 1
+    assert [e["job"] for e in events if e["event"] == "interrupted"] == ["j2"]
+
+
+def test_divergence_guard_restores_the_last_valid_parameters():
+    import torch
+
+    from materials import get_material
+    from toolkit.benchmark.callbacks import DivergenceGuard
+
+    class Fake(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.material = get_material("sand")
+            self.raw = torch.nn.Parameter(self.material.to_raw({"friction_angle": 30.0}))
+            self.v0 = torch.nn.Parameter(torch.zeros(3))
+            self.curriculum_step = 0
+            self.history = []
+
+        def material_params(self):
+            return self.material.to_physical(self.raw)
+
+    trainer = type("Trainer", (), {"should_stop": False})()
+    m, guard = Fake(), DivergenceGuard()
+    for step, angle in enumerate([25.0, 12.0, -3.0]):  # the third step pushes the angle out of its range
+        guard.on_train_batch_start(trainer, m, None, step)
+        with torch.no_grad():
+            m.raw.copy_(m.material.to_raw({"friction_angle": 30.0}))
+            m.raw[m.material.param_names.index("friction_angle")] = angle
+        m.curriculum_step += 1
+        m.history.append({"step": m.curriculum_step})
+        guard.on_train_batch_end(trainer, m, torch.tensor(0.0), None, step)
+        if trainer.should_stop:
+            break
+    assert trainer.should_stop and guard.diverged["step"] == 3 and "friction_angle" in guard.diverged["reason"]
+    assert m.material_params()[m.material.param_names.index("friction_angle")].item() == pytest.approx(12.0)
+    assert "diverged" in m.history[-1]
+    with torch.no_grad():
+        m.v0[0] = float("nan")
+    assert "v0" in DivergenceGuard.check(m)

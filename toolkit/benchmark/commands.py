@@ -1,0 +1,255 @@
+"""``projo4d benchmark``: strategies x scenes (x camera counts), in parallel, resumable, tabulated.
+
+Examples::
+
+    # a generated suite, the paper's three strategies, 3 views, every visible GPU
+    projo4d generate suite --out suites/s0 --families neo_hookean sand --per-family 3 --size full
+    projo4d benchmark --suite suites/s0 --out bench/s0 --strategies sequential joint progressive
+
+    # the benchmark writes the suite itself (one generation job per scene, in parallel)
+    projo4d benchmark --suite suites/s0 --generate --families neo_hookean sand --per-family 3 --out bench/s0
+
+    # chunks of at most 9 minutes (rerun the same command until it prints "complete": true)
+    projo4d benchmark --suite suites/s0 --out bench/s0 --time-limit 540 --jobs-per-gpu 2
+
+    # a public dataset on disk, the camera-count ablation (Table 8)
+    projo4d benchmark --scenes data/pacnerf/elastic/* --material neo_hookean --dataset pacnerf --cameras 1 2 3 10
+
+    # tables (Markdown + JSON) and figures again from what is on disk
+    projo4d benchmark --out bench/s0 --tables-only
+
+Progress is printed as JSON lines. Exit status: 0 when every job is done (failed ones are
+listed in the tables), 3 when the time limit stopped it first (rerun to continue), 2 for bad
+arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+__all__ = ["configure", "run", "spec_from_args"]
+
+
+def _json_arg(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"not valid JSON: {text!r} ({err.msg})") from None
+
+
+def _strategy_option(text: str) -> tuple[str, dict]:
+    label, sep, value = text.partition("=")
+    if not sep or not label:
+        raise argparse.ArgumentTypeError(f"expected LABEL=JSON such as cyclic='{{\"cycles\": 2}}', got {text!r}")
+    opts = _json_arg(value)
+    if not isinstance(opts, dict):
+        raise argparse.ArgumentTypeError(f"the options of {label} must be a JSON object, got {value!r}")
+    return label, opts
+
+
+def _gpus(text: str) -> list[str]:
+    text = text.strip()
+    if text.isdigit() and "," not in text:
+        return [str(i) for i in range(int(text))]
+    return [g.strip() for g in text.split(",") if g.strip()]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = __doc__.split("Examples::", 1)[1]
+    src = parser.add_argument_group("scenes")
+    src.add_argument("--suite", type=Path, help="a generated suite (suite.json; `projo4d generate suite`)")
+    src.add_argument("--generate", action="store_true",
+                     help="write the suite's missing scenes first (one job per scene; with --families, --per-family)")
+    src.add_argument("--scenes", nargs="+", type=Path, metavar="DIR", help="scene folders of a dataset on disk")
+    src.add_argument("--families", nargs="+", metavar="MATERIAL", help="suite families to use (or to generate)")
+    src.add_argument("--per-family", type=int, help="scenes per family (to generate, or at most this many of the suite)")
+    src.add_argument("--suite-size", choices=["small", "full"], help="size preset of generated scenes (default: --size)")
+    src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
+    src.add_argument("--suite-overrides", type=_json_arg, help="JSON SceneSpec fields for every generated scene")
+    src.add_argument("--material", help="material of --scenes (default: each scene's recorded ground truth)")
+    src.add_argument("--dataset", help="config prefix: the material's configs/<dataset>_*.yaml (default synthetic for "
+                                       "suites, pacnerf for --scenes)")
+    src.add_argument("--config", type=Path, help="one YAML config for every scene (RunSettings fields or run:/model:)")
+
+    what = parser.add_argument_group("what to compare")
+    what.add_argument("--strategies", nargs="+", default=["sequential", "joint", "progressive"], metavar="STRATEGY",
+                      help="registered names, schedule strings or LABEL=SPEC (default: sequential joint progressive)")
+    what.add_argument("--strategy-options", action="append", type=_strategy_option, default=[], metavar="LABEL=JSON",
+                      help="options of one strategy, e.g. cyclic='{\"pattern\": \"XA-(S-M-A)xN\"}' (repeatable)")
+    what.add_argument("--cameras", nargs="+", type=int, default=[3], metavar="N",
+                      help="camera counts (default 3; several make the Table-8 ablation)")
+
+    size = parser.add_argument_group("sizes and settings (config, then --size, then these)")
+    size.add_argument("--size", choices=["full", "small"], default="full",
+                      help="full: the configs as they are (GIC's 40k stage 0, the paper's iterations); small: CPU-sized")
+    size.add_argument("--stage0", help="'full', 'tiny' or JSON of Stage0Schedule fields")
+    size.add_argument("--stage0-iterations", type=int, help="GIC's stage-0 schedule scaled to this many iterations")
+    size.add_argument("--geometry", choices=["stage0", "oracle"], help="oracle: ground-truth geometry instead of stage 0")
+    size.add_argument("--sim", type=_json_arg, help='JSON SimConfig fields, e.g. \'{"substeps": 100}\' (merged)')
+    size.add_argument("--downscale", type=int, help="integer image downscale factor")
+    size.add_argument("--n-train", type=int, help="training frames (default: the scene's split)")
+    size.add_argument("--seed", type=int)
+    size.add_argument("--device", choices=["auto", "cpu", "cuda"], help="device of the jobs (default auto)")
+    size.add_argument("--renderer", help="renderer name (default auto)")
+    size.add_argument("--stage1-iterations", type=int, help="Stage-1 iterations of every strategy that has them (100)")
+    size.add_argument("--stage2-iterations", type=int, help="Stage-2 iterations (default per material: 150-350)")
+    size.add_argument("--appearance-iterations", type=int,
+                      help="sequential's appearance stage (GIC's Stage 3: 40000 at --size full; 0 skips it)")
+    size.add_argument("--periodic-eval", type=int, default=5, metavar="N",
+                      help="evaluations of future EMD/PSNR per stage during each fit, for the trajectory plots (0: off)")
+    size.add_argument("--periodic-eval-points", type=int, default=1024, metavar="N",
+                      help="points per cloud in the periodic EMD (default 1024; the final evaluation uses 2048)")
+    size.add_argument("--eval-every", type=int, help="evaluate every N iterations instead of --periodic-eval per stage")
+    size.add_argument("--checkpoint-every", type=int, default=200, help="physics iterations between checkpoints")
+
+    run = parser.add_argument_group("execution")
+    run.add_argument("--out", type=Path, help="benchmark folder (default bench/<suite or first scene name>)")
+    run.add_argument("--executor", choices=["local", "ray", "inline"], default="local")
+    run.add_argument("--workers", type=int, help="worker processes (default: GPUs x --jobs-per-gpu; 1 on a CPU)")
+    run.add_argument("--gpus", type=_gpus, help="GPU ids '0,1,2' or a count '4' (default: every visible GPU)")
+    run.add_argument("--jobs-per-gpu", type=int, default=1, help="jobs sharing one GPU (default 1)")
+    run.add_argument("--threads", type=int, help="torch threads per worker (default: CPU cores / workers)")
+    run.add_argument("--ray-address", help="Ray cluster address for --executor ray ('auto' = a running cluster)")
+    run.add_argument("--time-limit", type=float, metavar="SECONDS", help="return within this many seconds (jobs resume later)")
+    run.add_argument("--grace", type=float, default=45.0, help="seconds between asking jobs to stop and the limit")
+    run.add_argument("--retry-failed", action="store_true", help="run failed jobs again")
+    run.add_argument("--redo-changed", action="store_true", help="delete and redo results made with other settings")
+    run.add_argument("--dry-run", action="store_true", help="print the plan and time estimates only")
+    run.add_argument("--tables-only", action="store_true", help="only (re)write the tables and figures of --out")
+    run.add_argument("--no-figures", action="store_true", help="tables without the comparison figures")
+    run.add_argument("--export", type=Path, help="copy tables.md, tables.json, progress.jsonl and results.tar.gz here")
+    run.add_argument("--heartbeat", type=float, default=60.0, help="seconds between heartbeat lines")
+    run.add_argument("--estimate-for", choices=["cuda", "cpu"],
+                     help="price the time estimates for this device (default: the one the jobs run on)")
+
+
+def spec_from_args(args: argparse.Namespace):
+    """The :class:`~toolkit.benchmark.plan.BenchmarkSpec` of the command line."""
+    from toolkit.benchmark.plan import (
+        BenchmarkError,
+        BenchmarkSpec,
+        parse_strategy,
+        scaled_stage0,
+        scenes_from_dirs,
+        scenes_from_suite,
+        scenes_to_generate,
+    )
+
+    if bool(args.suite) == bool(args.scenes):
+        raise BenchmarkError("give either --suite DIR or --scenes DIR [DIR ...]")
+    if args.scenes:
+        scenes = scenes_from_dirs(args.scenes, args.material)
+        dataset = args.dataset or "pacnerf"
+    elif args.generate:
+        if not args.families or not args.per_family:
+            raise BenchmarkError("--generate needs --families and --per-family")
+        device = "cpu" if args.device == "cpu" else _generation_device(args)
+        scenes = scenes_to_generate(args.suite, args.families, args.per_family, args.suite_seed, args.suite_size or args.size,
+                                    device, args.suite_overrides)
+        dataset = args.dataset or "synthetic"
+    else:
+        scenes = scenes_from_suite(args.suite, args.families, args.per_family)
+        dataset = args.dataset or "synthetic"
+    options = dict(args.strategy_options)
+    strategies = [parse_strategy(s) for s in args.strategies]
+    for st in strategies:
+        st.options = dict(options.pop(st.label, {}))
+    if options:
+        raise BenchmarkError(f"--strategy-options for unknown strategies {sorted(options)}; strategies: "
+                             f"{[s.label for s in strategies]}")
+    overrides = {}
+    for key in ("geometry", "sim", "downscale", "n_train", "seed", "device", "renderer"):
+        v = getattr(args, key)
+        if v is not None:
+            overrides[key] = v
+    if args.stage0 and args.stage0_iterations:
+        raise BenchmarkError("give --stage0 or --stage0-iterations, not both")
+    if args.stage0:
+        overrides["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else _json_arg(args.stage0)
+    elif args.stage0_iterations:
+        overrides["stage0"] = scaled_stage0(args.stage0_iterations)
+    iterations = {k: getattr(args, k) for k in ("stage1_iterations", "stage2_iterations", "appearance_iterations")
+                  if getattr(args, k) is not None}
+    if args.eval_every:
+        periodic = {"every_n_steps": args.eval_every, "emd_points": args.periodic_eval_points}
+    elif args.periodic_eval and args.periodic_eval > 0:
+        periodic = {"per_stage": args.periodic_eval, "emd_points": args.periodic_eval_points}
+    else:
+        periodic = None
+    return BenchmarkSpec(scenes=scenes, strategies=strategies, cameras=list(args.cameras), size=args.size, dataset=dataset,
+                         config=str(args.config) if args.config else None, overrides=overrides, iterations=iterations,
+                         periodic_eval=periodic, checkpoint_every=args.checkpoint_every)
+
+
+def _generation_device(args: argparse.Namespace) -> str:
+    """Warp device for generation jobs as a worker sees it: its own GPU is ``cuda:0``."""
+    if args.executor == "inline":
+        import warp as wp
+
+        wp.init()
+        return "cuda:0" if wp.is_cuda_available() else "cpu"
+    from toolkit.benchmark.runner import _visible_gpus
+
+    return "cuda:0" if (args.gpus or _visible_gpus()) else "cpu"
+
+
+def _default_out(args: argparse.Namespace) -> Path:
+    if args.out:
+        return args.out
+    name = args.suite.name if args.suite else (args.scenes[0].name if args.scenes else "benchmark")
+    return Path("bench") / name
+
+
+def run(args: argparse.Namespace) -> int:
+    from toolkit.benchmark.plan import BenchmarkError
+
+    if args.tables_only:
+        return _tables_only(args)
+    try:
+        spec = spec_from_args(args)
+        from toolkit.benchmark.runner import run_benchmark
+
+        result = run_benchmark(spec, _default_out(args), executor=args.executor, workers=args.workers, gpus=args.gpus,
+                               jobs_per_gpu=args.jobs_per_gpu, threads=args.threads, ray_address=args.ray_address,
+                               time_limit=args.time_limit, grace=args.grace, retry_failed=args.retry_failed,
+                               redo_changed=args.redo_changed, dry_run=args.dry_run,
+                               export=str(args.export) if args.export else None, figures=not args.no_figures,
+                               heartbeat=args.heartbeat, estimate_for=args.estimate_for)
+    except BenchmarkError as err:
+        raise SystemExit(f"projo4d benchmark: {err}") from None
+    return 0 if result["complete"] or args.dry_run else 3
+
+
+def _tables_only(args: argparse.Namespace) -> int:
+    from toolkit.benchmark.plots import write_figures
+    from toolkit.benchmark.tables import collect_records, write_tables
+
+    out = _default_out(args)
+    meta_path = out / "benchmark.json"
+    if not meta_path.is_file():
+        raise SystemExit(f"projo4d benchmark: {meta_path} does not exist (run the benchmark first)")
+    spec = json.loads(meta_path.read_text()).get("spec", {})
+    strategies = [s["label"] for s in spec.get("strategies", [])]
+    try:
+        from toolkit.benchmark.plan import BenchmarkSpec, plan_benchmark
+        from toolkit.benchmark.runner import _settings_summary
+
+        full = BenchmarkSpec.from_dict(spec)
+        settings = _settings_summary(full, [j.to_dict() for j in plan_benchmark(full, out)])
+    except Exception:  # noqa: BLE001 - the scenes moved: the spec's own summary
+        settings = {"size": spec.get("size"), "cameras": spec.get("cameras"), "overrides": spec.get("overrides"),
+                    "iteration overrides": spec.get("iterations"), "periodic evaluation": spec.get("periodic_eval")}
+    md, js, tables = write_tables(out, strategies=strategies, settings=settings)
+    if not args.no_figures:
+        records, _ = collect_records(out)
+        write_figures(out, records, strategies=strategies)
+    if args.export:
+        from toolkit.benchmark.runner import _Events, _export
+
+        _export(out.resolve(), args.export, _Events(None))
+    print(json.dumps({"event": "tables", "markdown": str(md), "json": str(js),
+                      "rows": sum(len(t["rows"]) for t in tables["tables"])}))
+    return 0

@@ -1,0 +1,403 @@
+"""The paper-style tables of a benchmark: per material, mean ± std over scenes, one row per strategy.
+
+Input: one *record* per finished fit (:func:`record_from_run` reads a run folder's
+``summary.json`` and ``evaluation/evaluation.json``)::
+
+    {"scene": "neo_hookean/000", "material": "neo_hookean", "strategy": "progressive", "cameras": 3,
+     "metrics": {"cd": 0.91, "emd": 0.042, "psnr": 22.3, "ssim": 0.91, "init_cd": 0.34, ...},
+     "errors": {"E": 0.12, "nu": 0.05, "v0": 0.007}, "optimized": ["E", "nu"], "curriculum": "..."}
+
+Output of :func:`build_tables` (also written as ``tables.json``; :func:`tables_markdown` renders it):
+
+* ``tables``: per material and camera count, the columns CD, EMD (future frames), PSNR, SSIM
+  (future frames, all cameras) and the MAE of v0 and of each optimized material parameter
+  (log10 for E, mu, kappa, tau_Y, eta; absolute for nu and the friction angle in degrees), as
+  ``{"mean", "std", "n"}`` per strategy (the paper's Tables 2, 3, 6, 7). The standard deviation is
+  the population one (``ddof = 0``) over scenes; a value missing in a scene (no ground truth, a
+  failed metric) leaves that scene out of that cell.
+* ``per_scene``: the same numbers per scene (Table 2's layout: scenes as columns).
+* ``ablation``: per material, when several camera counts ran: Init CD (frame 0), CD, PSNR and
+  the parameter MAEs per strategy and camera count (Table 8's layout).
+* ``claims``: pairwise comparisons of strategies on the means and the per-scene wins (e.g. does
+  ``progressive`` beat ``sequential`` on future CD), for the write-up.
+
+A fit that *diverged* (its parameters left the valid set, see
+:class:`~toolkit.benchmark.callbacks.DivergenceGuard`) is evaluated at its last valid estimate
+and counted in the means, and listed with the iteration and the reason; a job that *failed*
+(an error, e.g. a simulation that fails on the final estimate) has no numbers and is listed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+__all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
+           "write_tables", "mean_std"]
+
+#: metric key -> (label, better: "lower"/"higher", decimals)
+METRICS: dict[str, tuple[str, str, int]] = {
+    "cd": ("CD", "lower", 3),
+    "emd": ("EMD", "lower", 4),
+    "psnr": ("PSNR", "higher", 2),
+    "ssim": ("SSIM", "higher", 3),
+    "init_cd": ("Init CD", "lower", 3),
+    "cd_train": ("CD (train)", "lower", 3),
+    "emd_train": ("EMD (train)", "lower", 4),
+    "psnr_held_out": ("PSNR held-out", "higher", 2),
+    "ssim_held_out": ("SSIM held-out", "higher", 3),
+}
+MAIN_METRICS = ("cd", "emd", "psnr", "ssim")
+ABLATION_METRICS = ("init_cd", "cd", "psnr")
+
+#: parameter -> (label of its MAE, decimals), in the paper's order
+PARAM_LABELS: dict[str, tuple[str, int]] = {
+    "v0": ("MAE v0", 4),
+    "E": ("MAE log E", 3),
+    "nu": ("MAE nu", 3),
+    "mu": ("MAE log mu", 3),
+    "kappa": ("MAE log kappa", 3),
+    "yield_stress": ("MAE log tau_Y", 3),
+    "plastic_viscosity": ("MAE log eta", 3),
+    "friction_angle": ("MAE friction angle (deg)", 2),
+}
+
+
+# ------------------------------------------------------------------------------------ records
+def _num(x) -> Optional[float]:
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def record_from_run(run_dir: str | Path, meta: Optional[dict] = None) -> Optional[dict]:
+    """The record of one finished run folder (``None`` when its ``summary.json`` is missing).
+
+    Args:
+        run_dir: a pipeline run folder (``summary.json``, ``evaluation/evaluation.json``).
+        meta: ``scene``, ``strategy``, ``cameras`` (default: from the summary's ``benchmark``
+            section, else the folder names ``.../<scene>/cams<k>/<strategy>``).
+    """
+    run = Path(run_dir)
+    sp = run / "summary.json"
+    if not sp.is_file():
+        return None
+    summary = json.loads(sp.read_text())
+    ev_path = run / "evaluation" / "evaluation.json"
+    ev = json.loads(ev_path.read_text()) if ev_path.is_file() else {}
+    bench = summary.get("benchmark") or {}
+    meta = dict(meta or {})
+    cams = meta.get("cameras", bench.get("cameras"))
+    if cams is None and run.parent.name.startswith("cams"):
+        cams = int(run.parent.name[4:])
+    geo = ev.get("geometry") or {}
+    images = ev.get("images") or {}
+    held = images.get("held_out_cameras") or {}
+    fut, tr = summary.get("future") or {}, summary.get("train") or {}
+    cd_frames = geo.get("cd_per_frame") or []
+    metrics = {"cd": _num(fut.get("cd")), "emd": _num(fut.get("emd")), "psnr": _num(fut.get("psnr")), "ssim": _num(fut.get("ssim")),
+               "init_cd": _num(cd_frames[0]) if cd_frames else None, "cd_train": _num(tr.get("cd")),
+               "emd_train": _num(tr.get("emd")), "psnr_held_out": _num(held.get("psnr_future")),
+               "ssim_held_out": _num(held.get("ssim_future"))}
+    errors = {k.split("/", 1)[-1]: _num(v) for k, v in (summary.get("errors") or {}).items() if _num(v) is not None}
+    optimized = bench.get("optimized")
+    if optimized is None:
+        from materials import get_material
+
+        try:
+            optimized = [p.name for p in get_material(summary["material"]).params if p.optimize]
+        except Exception:  # noqa: BLE001 - an unknown (plugin) material: report every error
+            optimized = [k for k in errors if k != "v0"]
+    return {
+        "scene": meta.get("scene") or str(run.parent.parent.name),
+        "material": summary.get("material"),
+        "strategy": meta.get("strategy") or bench.get("strategy") or run.name,
+        "cameras": cams,
+        "curriculum": summary.get("curriculum"),
+        "metrics": metrics,
+        "errors": errors,
+        "optimized": list(optimized),
+        "timings_s": summary.get("timings_s") or {},
+        "per_frame": {"cd": geo.get("cd_per_frame"), "emd": geo.get("emd_per_frame"),
+                      "psnr": (images.get("all_cameras") or {}).get("psnr_per_frame")},
+        "n_train": ev.get("n_train"),
+        "diverged": bench.get("diverged"),
+        "run_dir": str(run),
+    }
+
+
+def collect_records(bench_dir: str | Path) -> tuple[list[dict], list[dict]]:
+    """Records of every finished fit of a benchmark folder, and the failed jobs (from their markers)."""
+    from toolkit.benchmark.jobs import read_marker
+
+    records, failures = [], []
+    runs = Path(bench_dir) / "runs"
+    if not runs.is_dir():
+        return records, failures
+    for marker_path in sorted(runs.rglob("job.json")):
+        m = read_marker(marker_path.parent)
+        if not m or m.get("kind") != "fit":
+            continue
+        meta = {"scene": m.get("scene"), "strategy": m.get("strategy"), "cameras": m.get("cameras")}
+        if m.get("status") == "done":
+            rec = record_from_run(marker_path.parent, meta)
+            if rec is not None:
+                rec["wall_s"] = m.get("wall_s_total")
+                records.append(rec)
+        elif m.get("status") == "failed":
+            failures.append({**meta, "material": m.get("material"), "error": m.get("error"), "job": m.get("id")})
+    return records, failures
+
+
+# ------------------------------------------------------------------------------------ aggregation
+def mean_std(values: Iterable[Optional[float]]) -> dict:
+    """``{"mean", "std", "n"}`` of the finite values (population std); ``None`` entries when empty."""
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    if not vals:
+        return {"mean": None, "std": None, "n": 0}
+    m = sum(vals) / len(vals)
+    return {"mean": m, "std": math.sqrt(sum((v - m) ** 2 for v in vals) / len(vals)), "n": len(vals)}
+
+
+def _value(rec: dict, key: str) -> Optional[float]:
+    if key.startswith("mae:"):
+        return rec["errors"].get(key[4:])
+    return rec["metrics"].get(key)
+
+
+def _param_columns(records: Sequence[dict]) -> list[str]:
+    names = set()
+    for r in records:
+        names |= {p for p in r.get("optimized", []) if p in r["errors"]}
+        if "v0" in r["errors"]:
+            names.add("v0")
+    order = list(PARAM_LABELS)
+    return [p for p in order if p in names] + sorted(names - set(order))
+
+
+def _columns(keys: Sequence[str], params: Sequence[str]) -> list[dict]:
+    cols = [{"key": k, "label": METRICS[k][0], "better": METRICS[k][1], "decimals": METRICS[k][2]} for k in keys]
+    for p in params:
+        label, dec = PARAM_LABELS.get(p, (f"MAE {p}", 3))
+        cols.append({"key": f"mae:{p}", "label": label, "better": "lower", "decimals": dec})
+    return cols
+
+
+def _order(values: Iterable[str], preferred: Optional[Sequence[str]]) -> list[str]:
+    values = list(dict.fromkeys(values))
+    pref = [v for v in (preferred or []) if v in values]
+    return pref + sorted(v for v in values if v not in pref)
+
+
+def build_tables(records: Sequence[dict], strategies: Optional[Sequence[str]] = None, failures: Sequence[dict] = (),
+                 settings: Optional[dict] = None, planned: Optional[dict] = None) -> dict:
+    """Aggregate records into the tables described in the module docstring.
+
+    Args:
+        records: one per finished fit.
+        strategies: row order (default: alphabetical).
+        failures: failed jobs, listed with the tables.
+        settings: what was run (stored as is under ``settings``).
+        planned: ``{(material, cameras, strategy): number of scenes planned}`` as
+            ``"material|cameras|strategy"`` keys, to show ``done/planned``.
+    """
+    out: dict = {"format": "projo4d-benchmark-tables", "version": 1, "settings": settings or {}, "tables": [],
+                 "ablation": [], "claims": [], "failures": list(failures)}
+    materials = _order((r["material"] for r in records), None)
+    for mat in materials:
+        mrecs = [r for r in records if r["material"] == mat]
+        params = _param_columns(mrecs)
+        strat_order = _order((r["strategy"] for r in mrecs), strategies)
+        cam_counts = sorted({r["cameras"] for r in mrecs}, key=lambda c: (c is None, c))
+        for cams in cam_counts:
+            crecs = [r for r in mrecs if r["cameras"] == cams]
+            cols = _columns(MAIN_METRICS, params)
+            scenes = _order((r["scene"] for r in crecs), None)
+            rows = []
+            for st in strat_order:
+                srecs = [r for r in crecs if r["strategy"] == st]
+                if not srecs:
+                    continue
+                row = {"strategy": st, "n": len(srecs), "curriculum": srecs[0].get("curriculum"),
+                       "diverged": [{"scene": r["scene"], **r["diverged"]} for r in srecs if r.get("diverged")],
+                       "values": {c["key"]: mean_std(_value(r, c["key"]) for r in srecs) for c in cols}}
+                if planned is not None:
+                    row["planned"] = planned.get(f"{mat}|{cams}|{st}")
+                rows.append(row)
+            per_scene = {sc: {r["strategy"]: {c["key"]: _value(r, c["key"]) for c in cols} for r in crecs if r["scene"] == sc}
+                         for sc in scenes}
+            out["tables"].append({"material": mat, "cameras": cams, "columns": cols, "rows": rows, "scenes": scenes,
+                                  "per_scene": per_scene})
+            out["claims"] += _claims(mat, cams, crecs, strat_order, cols)
+        if len(cam_counts) > 1:
+            cols = _columns(ABLATION_METRICS, params)
+            cells = {}
+            for st in strat_order:
+                for cams in cam_counts:
+                    srecs = [r for r in mrecs if r["strategy"] == st and r["cameras"] == cams]
+                    if srecs:
+                        cells[f"{st}|{cams}"] = {c["key"]: mean_std(_value(r, c["key"]) for r in srecs) for c in cols}
+            out["ablation"].append({"material": mat, "cameras": cam_counts, "strategies": strat_order, "columns": cols,
+                                    "cells": cells})
+    return out
+
+
+_PAIRS = (("progressive", "sequential"), ("progressive", "joint"), ("progressive", "cyclic"))
+
+
+def _claims(material: str, cams, records: Sequence[dict], strategies: Sequence[str], cols: Sequence[dict]) -> list[dict]:
+    """For each pair (A, B) present: per column, is A's mean better, and in how many scenes A beats B."""
+    out = []
+    present = set(strategies)
+    for a, b in _PAIRS:
+        if a not in present or b not in present:
+            continue
+        by_scene = {}
+        for r in records:
+            by_scene.setdefault(r["scene"], {})[r["strategy"]] = r
+        for c in cols:
+            pa = mean_std(_value(r, c["key"]) for r in records if r["strategy"] == a)["mean"]
+            pb = mean_std(_value(r, c["key"]) for r in records if r["strategy"] == b)["mean"]
+            wins = total = 0
+            for recs in by_scene.values():
+                if a in recs and b in recs:
+                    va, vb = _value(recs[a], c["key"]), _value(recs[b], c["key"])
+                    if va is None or vb is None:
+                        continue
+                    total += 1
+                    wins += (va < vb) if c["better"] == "lower" else (va > vb)
+            if pa is None or pb is None:
+                continue
+            better = pa < pb if c["better"] == "lower" else pa > pb
+            out.append({"material": material, "cameras": cams, "a": a, "b": b, "metric": c["key"], "label": c["label"],
+                        "mean_a": pa, "mean_b": pb, "a_better": bool(better), "scene_wins_a": wins, "scenes": total})
+    return out
+
+
+# ------------------------------------------------------------------------------------ Markdown
+def _fmt(cell: dict, decimals: int, with_std: bool = True) -> str:
+    if not cell or cell.get("mean") is None:
+        return "-"
+    m = f"{cell['mean']:.{decimals}f}"
+    if with_std and cell.get("n", 0) > 1:
+        return f"{m} ± {cell['std']:.{decimals}f}"
+    return m
+
+
+def _best(rows: Sequence[dict], col: dict) -> Optional[float]:
+    means = [r["values"][col["key"]]["mean"] for r in rows if r["values"][col["key"]]["mean"] is not None]
+    if len(means) < 2:
+        return None
+    return min(means) if col["better"] == "lower" else max(means)
+
+
+def _arrow(col: dict) -> str:
+    return "↓" if col["better"] == "lower" else "↑"
+
+
+def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
+    """Markdown of :func:`build_tables`' result: settings, one table per material and camera count
+    (best mean in bold), per-scene tables, the camera-count ablation, the pairwise comparisons and
+    the failures."""
+    lines = [f"# {title}", ""]
+    settings = tables.get("settings") or {}
+    if settings:
+        lines += ["## What was run", ""]
+        for k, v in settings.items():
+            lines.append(f"- **{k}**: {v if isinstance(v, str) else json.dumps(v)}")
+        lines.append("")
+    lines += ["Values are mean ± standard deviation over scenes (population std; `n` scenes per row). CD (x1e3) and "
+              "EMD (m) compare the predicted particles with the ground-truth clouds over the future frames; PSNR (dB) "
+              "and SSIM are over the future frames of all cameras; MAE is the absolute error of log10 E, mu, kappa, "
+              "tau_Y, eta and of nu, the friction angle (degrees) and v0 (m/s, mean of the components). Best mean in "
+              "bold.", ""]
+    for t in tables.get("tables", []):
+        cols, rows = t["columns"], t["rows"]
+        lines += [f"## {t['material']}, {t['cameras']} views", ""]
+        head = ["strategy", "n"] + [f"{c['label']} {_arrow(c)}" for c in cols]
+        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * len(cols)]
+        best = {c["key"]: _best(rows, c) for c in cols}
+        for r in rows:
+            n = f"{r['n']}" + (f"/{r['planned']}" if r.get("planned") else "")
+            if r.get("diverged"):
+                n += f" ({len(r['diverged'])} diverged)"
+            cells = []
+            for c in cols:
+                cell = r["values"][c["key"]]
+                text = _fmt(cell, c["decimals"])
+                if best[c["key"]] is not None and cell["mean"] == best[c["key"]]:
+                    text = f"**{text}**"
+                cells.append(text)
+            lines.append("| " + " | ".join([r["strategy"], n] + cells) + " |")
+        lines.append("")
+        sched = [f"`{r['strategy']}`: `{r['curriculum']}`" for r in rows if r.get("curriculum")]
+        if sched:
+            lines += ["Schedules: " + "; ".join(sched) + ".", ""]
+        lines += [f"Per scene ({len(t['scenes'])}):", ""]
+        head = ["metric", "strategy"] + t["scenes"]
+        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * len(t["scenes"])]
+        for c in cols:
+            for r in rows:
+                vals = []
+                for sc in t["scenes"]:
+                    v = t["per_scene"].get(sc, {}).get(r["strategy"], {}).get(c["key"])
+                    vals.append("-" if v is None else f"{v:.{c['decimals']}f}")
+                lines.append("| " + " | ".join([f"{c['label']} {_arrow(c)}", r["strategy"]] + vals) + " |")
+        lines.append("")
+    for a in tables.get("ablation", []):
+        lines += [f"## {a['material']}: number of cameras", ""]
+        head = ["metric", "strategy"] + [str(c) for c in a["cameras"]]
+        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * len(a["cameras"])]
+        for c in a["columns"]:
+            for st in a["strategies"]:
+                vals = [_fmt((a["cells"].get(f"{st}|{cams}") or {}).get(c["key"]), c["decimals"], with_std=False)
+                        for cams in a["cameras"]]
+                lines.append("| " + " | ".join([f"{c['label']} {_arrow(c)}", st] + vals) + " |")
+        lines.append("")
+    if tables.get("claims"):
+        lines += ["## Pairwise comparisons", "",
+                  "| material | views | comparison | metric | mean A | mean B | A better | scenes A wins |",
+                  "|---|---|---|---|---:|---:|---|---:|"]
+        for c in tables["claims"]:
+            dec = 4 if c["metric"] in ("emd",) else 3
+            lines.append(f"| {c['material']} | {c['cameras']} | {c['a']} (A) vs {c['b']} (B) | {c['label']} | "
+                         f"{c['mean_a']:.{dec}f} | {c['mean_b']:.{dec}f} | {'yes' if c['a_better'] else 'no'} | "
+                         f"{c['scene_wins_a']}/{c['scenes']} |")
+        lines.append("")
+    diverged = [(t["material"], t["cameras"], r["strategy"], d) for t in tables.get("tables", []) for r in t["rows"]
+                for d in r.get("diverged") or []]
+    if diverged:
+        lines += ["## Diverged fits", "",
+                  "These fits left the valid parameter set (NaN, or a parameter out of its material's range); they stopped "
+                  "there and their last valid estimate was evaluated (it is included in the means).", ""]
+        for mat, cams, st, d in diverged:
+            lines.append(f"- {mat} {d.get('scene')} {cams} views, {st}: iteration {d.get('step')}: {d.get('reason')}")
+        lines.append("")
+    if tables.get("failures"):
+        lines += ["## Failed jobs", ""]
+        for f in tables["failures"]:
+            lines.append(f"- {f.get('material')} {f.get('scene')} {f.get('cameras')} views, {f.get('strategy')}: {f.get('error')}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_tables(bench_dir: str | Path, out_dir: Optional[str | Path] = None, strategies: Optional[Sequence[str]] = None,
+                 settings: Optional[dict] = None, planned: Optional[dict] = None, title: str = "Strategy comparison"
+                 ) -> tuple[Path, Path, dict]:
+    """Collect a benchmark folder's records and write ``tables.md`` and ``tables.json``.
+
+    Returns:
+        The two paths and the tables dict.
+    """
+    records, failures = collect_records(bench_dir)
+    tables = build_tables(records, strategies, failures, settings, planned)
+    tables["records"] = [{k: v for k, v in r.items() if k != "per_frame"} for r in records]
+    out = Path(out_dir) if out_dir else Path(bench_dir) / "tables"
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "tables.md", out / "tables.json"
+    md.write_text(tables_markdown(tables, title))
+    js.write_text(json.dumps(tables, indent=2))
+    return md, js, tables
