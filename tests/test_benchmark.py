@@ -135,6 +135,9 @@ def test_tables_mean_std_of_known_numbers():
     assert [c["key"] for c in main3["columns"]] == ["cd", "emd", "psnr", "ssim", "mae:v0", "mae:E", "mae:nu"]
     claims = [c for c in t["claims"] if c["metric"] == "cd" and c["cameras"] == 3]
     assert claims[0]["a_better"] and claims[0]["scene_wins_a"] == 2 and claims[0]["scenes"] == 2
+    # paired: sequential has no EMD on s1, so both EMD means are over s0 alone
+    (emd,) = [c for c in t["claims"] if c["metric"] == "emd" and c["cameras"] == 3]
+    assert (emd["scenes"], emd["mean_a"], emd["mean_b"]) == (1, pytest.approx(0.04), pytest.approx(0.10))
     (abl,) = t["ablation"]
     assert abl["cameras"] == [1, 3] and abl["cells"]["progressive|1"]["init_cd"]["mean"] == pytest.approx(0.3)
     md = tables_markdown(t)

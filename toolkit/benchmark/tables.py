@@ -34,6 +34,8 @@ import math
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
+import numpy as np
+
 __all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
            "write_tables", "mean_std"]
 
@@ -249,31 +251,35 @@ _PAIRS = (("progressive", "sequential"), ("progressive", "joint"), ("progressive
 
 
 def _claims(material: str, cams, records: Sequence[dict], strategies: Sequence[str], cols: Sequence[dict]) -> list[dict]:
-    """For each pair (A, B) present: per column, is A's mean better, and in how many scenes A beats B."""
+    """For each pair (A, B) present: per column, is A's mean better, and in how many scenes A beats B.
+
+    Both the means and the wins are taken over the scenes where both strategies have a value
+    (paired), so an unfinished or failed fit of one strategy cannot tilt the comparison.
+    """
     out = []
     present = set(strategies)
+    by_scene: dict = {}
+    for r in records:
+        by_scene.setdefault(r["scene"], {})[r["strategy"]] = r
     for a, b in _PAIRS:
         if a not in present or b not in present:
             continue
-        by_scene = {}
-        for r in records:
-            by_scene.setdefault(r["scene"], {})[r["strategy"]] = r
         for c in cols:
-            pa = mean_std(_value(r, c["key"]) for r in records if r["strategy"] == a)["mean"]
-            pb = mean_std(_value(r, c["key"]) for r in records if r["strategy"] == b)["mean"]
-            wins = total = 0
+            pairs = []
             for recs in by_scene.values():
                 if a in recs and b in recs:
                     va, vb = _value(recs[a], c["key"]), _value(recs[b], c["key"])
-                    if va is None or vb is None:
-                        continue
-                    total += 1
-                    wins += (va < vb) if c["better"] == "lower" else (va > vb)
-            if pa is None or pb is None:
+                    if va is not None and vb is not None:
+                        pairs.append((va, vb))
+            if not pairs:
                 continue
-            better = pa < pb if c["better"] == "lower" else pa > pb
+            pa = float(np.mean([p[0] for p in pairs]))
+            pb = float(np.mean([p[1] for p in pairs]))
+            lower = c["better"] == "lower"
+            wins = sum((va < vb) if lower else (va > vb) for va, vb in pairs)
+            better = pa < pb if lower else pa > pb
             out.append({"material": material, "cameras": cams, "a": a, "b": b, "metric": c["key"], "label": c["label"],
-                        "mean_a": pa, "mean_b": pb, "a_better": bool(better), "scene_wins_a": wins, "scenes": total})
+                        "mean_a": pa, "mean_b": pb, "a_better": bool(better), "scene_wins_a": wins, "scenes": len(pairs)})
     return out
 
 
@@ -359,7 +365,7 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
         lines.append("")
     if tables.get("claims"):
         lines += ["## Pairwise comparisons", "",
-                  "| material | views | comparison | metric | mean A | mean B | A better | scenes A wins |",
+                  "| material | views | comparison | metric | mean A (paired) | mean B (paired) | A better | scenes A wins |",
                   "|---|---|---|---|---:|---:|---|---:|"]
         for c in tables["claims"]:
             dec = 4 if c["metric"] in ("emd",) else 3
