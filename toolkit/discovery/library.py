@@ -522,6 +522,10 @@ class LibraryModel:
         loss.backward()
         return qt.grad.detach().cpu().numpy().copy()
 
+    def image_rows(self) -> int:
+        """Number of image rows at the head of :meth:`residuals` (the geometric rows follow)."""
+        return len(self.train_frames()) * len(self.input.train_cameras) * self.module.images[0, 0].numel()
+
     def calibrate_geometry_weight(self, q) -> float:
         """Set :attr:`geometry_weight` so that the geometric share of the Gauss-Newton objective at
         ``q`` equals its share in the module's own loss (L1/SSIM images vs Chamfer), and return it.
@@ -534,7 +538,7 @@ class LibraryModel:
         self.geometry_weight = 1.0
         self.assign(q, frames)
         r = self.residuals(q)
-        n_img = len(frames) * len(self.input.train_cameras) * self.module.images[0, 0].numel()
+        n_img = self.image_rows()
         g_img, g_geo = float(r[:n_img] @ r[:n_img]), float(r[n_img:] @ r[n_img:])
         losses = self.image_losses(q, frames, list(self.input.train_cameras))
         l_img = float(m.lambda_image * losses.sum() / len(frames))
