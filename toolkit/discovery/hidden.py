@@ -71,13 +71,18 @@ LEVELS: dict[str, dict[str, dict[str, float]]] = {
 }
 
 #: scene and fit sizes: ``tiny`` for tests and CPU smoke runs, ``full`` for the GPU benchmark.
+#: The ``full`` base fit keeps the particle positions fixed (no ``X`` group; the benchmark's
+#: particles are the true body): free positions absorb a missing effect into the shape. On the
+#: full-size hidden-friction scene (mu = 0.6) the fitted body grew from 7 to 14 cm tall and
+#: friction went unnamed; with positions fixed, friction is named (mu = 0.85) and the future
+#: Chamfer gap shrinks by 53 %. ``tiny`` still fits positions (its calibration was made so).
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": {"scene": dict(width=32, height=32, n_cameras=10, n_frames=9, n_train_frames=6, dx=0.04, particle_spacing=0.01,
                            substeps=80, supersample=1),
              "fit": dict(dx=0.04, substeps=30, particle_spacing=0.02, curriculum="XAS:20@3,XASM:80")},
     "full": {"scene": dict(width=96, height=96, n_cameras=10, n_frames=14, n_train_frames=10, dx=0.02, particle_spacing=0.01,
                            substeps=120, supersample=2),
-             "fit": dict(dx=0.03, substeps=40, particle_spacing=0.015, curriculum="XAS:60@3,XASM:300")},
+             "fit": dict(dx=0.03, substeps=40, particle_spacing=0.015, curriculum="AS:60@3,ASM:300")},
 }
 
 #: the fitted camera the camera-pose control perturbs (index into the training cameras).
