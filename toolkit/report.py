@@ -19,19 +19,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from toolkit.plotting import pyplot, save_figure
+
 __all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report", "plot_evaluation_trajectories",
            "compressed_axis"]
 
 _LOG_PARAMS = {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"}
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _shade_stages(ax, curriculum: Sequence[dict]) -> None:
@@ -44,7 +37,7 @@ def _shade_stages(ax, curriculum: Sequence[dict]) -> None:
 def plot_trajectories(history: Sequence[dict], curriculum: Sequence[dict], path: str | Path,
                       truth: Optional[dict] = None) -> Path:
     """One figure: losses, each material parameter (log10 where optimized in log space), v0, errors."""
-    plt = _plt()
+    plt = pyplot()
     truth = truth or {}
     steps = np.array([h["step"] for h in history])
     params = sorted({k[6:] for h in history for k in h if k.startswith("param/")})
@@ -83,11 +76,7 @@ def plot_trajectories(history: Sequence[dict], curriculum: Sequence[dict], path:
         ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
@@ -101,7 +90,7 @@ def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
         series += [("PSNR (dB), all cameras", im["psnr_per_frame"]), ("SSIM, all cameras", im["ssim_per_frame"])]
     if not series:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(series), figsize=(3.6 * len(series), 2.8), squeeze=False)
     n_train = evaluation["n_train"]
     for ax, (title, vals) in zip(axes.flat, series):
@@ -111,11 +100,7 @@ def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
         ax.set_xlabel("frame", fontsize=8)
         ax.tick_params(labelsize=7)
     axes.flat[0].legend(fontsize=7)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
@@ -247,7 +232,7 @@ def plot_evaluation_trajectories(history: Sequence[dict], curriculum: Sequence[d
     every iteration. Stages longer than ``cap`` iterations are drawn squeezed
     (:func:`compressed_axis`), and the stage boundaries are labelled with their iteration.
     """
-    plt = _plt()
+    plt = pyplot()
     to_plot, compressed = compressed_axis(curriculum, cap)
     panels = _eval_panels(history)
     ncols = min(3, max(1, len(panels)))
@@ -275,8 +260,4 @@ def plot_evaluation_trajectories(history: Sequence[dict], curriculum: Sequence[d
             ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -21,17 +21,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from toolkit.plotting import pyplot, save_figure
+
 __all__ = ["plot_strategy_trajectories", "plot_per_frame_by_strategy", "comparison_strip", "comparison_strip_video",
            "write_figures"]
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _mean_series(histories: Sequence[Sequence[dict]], key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +55,7 @@ def plot_strategy_trajectories(histories: dict[str, Sequence[Sequence[dict]]], c
     """
     from toolkit.report import compressed_axis
 
-    plt = _plt()
+    plt = pyplot()
     if cap is None:
         spans = [s["end"] - s["start"] for cur in curricula.values() for s in cur if s["end"] - s["start"] <= 1000]
         cap = max(100, max(spans) if spans else 100)
@@ -101,12 +94,7 @@ def plot_strategy_trajectories(histories: dict[str, Sequence[Sequence[dict]]], c
         ax.axis("off")
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_per_frame_by_strategy(per_frame: dict[str, Sequence[dict]], n_train: int, path: str | Path, title: str = "") -> Path:
@@ -118,7 +106,7 @@ def plot_per_frame_by_strategy(per_frame: dict[str, Sequence[dict]], n_train: in
         path: the PNG.
         title: figure title.
     """
-    plt = _plt()
+    plt = pyplot()
     keys = [("cd", "Chamfer distance (x1e3)"), ("emd", "EMD (m)"), ("psnr", "PSNR (dB), all cameras")]
     keys = [(k, t) for k, t in keys if any(pf.get(k) for runs in per_frame.values() for pf in runs)]
     fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(4.0 * max(1, len(keys)), 3.0), squeeze=False)
@@ -147,12 +135,7 @@ def plot_per_frame_by_strategy(per_frame: dict[str, Sequence[dict]], n_train: in
             ax.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _upscale(img: np.ndarray, min_height: int = 160) -> np.ndarray:

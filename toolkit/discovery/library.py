@@ -482,13 +482,17 @@ class LibraryModel:
         with torch.set_grad_enabled(grad):
             img = self.render(q, means, cams)
             obs = self.observed_images(frames, cams)
-            F, C = img.shape[:2]
-            flat_i, flat_o = img.reshape(F * C, *img.shape[2:]), obs.reshape(F * C, *obs.shape[2:])
-            l1 = (flat_i - flat_o).abs().mean(dim=(1, 2, 3))
-            ssim = ssim_torch(flat_i, flat_o, reduction="none").reshape(F * C, -1).mean(1)
-            w = self.module.ssim_weight
-            out = ((1 - w) * l1 + w * (1 - ssim)).reshape(F, C)
+            out = self._image_loss(img, obs)
         return out if grad else out.detach().cpu()
+
+    def _image_loss(self, img: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """(F, C) ``(1 - w) L1 + w (1 - SSIM)`` of renders ``img`` against ``obs`` (F, C, H, W, 3)."""
+        F, C = img.shape[:2]
+        flat_i, flat_o = img.reshape(F * C, *img.shape[2:]), obs.reshape(F * C, *obs.shape[2:])
+        l1 = (flat_i - flat_o).abs().mean(dim=(1, 2, 3))
+        ssim = ssim_torch(flat_i, flat_o, reduction="none").reshape(F * C, -1).mean(1)
+        w = self.module.ssim_weight
+        return ((1 - w) * l1 + w * (1 - ssim)).reshape(F, C)
 
     def fit_loss(self, q, grad: bool = False) -> torch.Tensor:
         """The module's training loss (image + geometry terms on the fitted cameras and training
@@ -500,12 +504,8 @@ class LibraryModel:
         with torch.set_grad_enabled(grad):
             img = self.render(q, means, cams)
             obs = self.observed_images(frames, cams)
-            F, C = img.shape[:2]
-            fi, fo = img.reshape(F * C, *img.shape[2:]), obs.reshape(F * C, *obs.shape[2:])
-            l1 = (fi - fo).abs().mean(dim=(1, 2, 3))
-            ssim = ssim_torch(fi, fo, reduction="none").reshape(F * C, -1).mean(1)
-            w = self.module.ssim_weight
-            total = self.module.lambda_image * ((1 - w) * l1 + w * (1 - ssim)).sum() / F
+            F = img.shape[0]
+            total = self.module.lambda_image * self._image_loss(img, obs).sum() / F
             if self.module.lambda_geometry > 0:
                 geo = torch.zeros((), device=pos.device)
                 for pair in self._geometry_pairs(pos, frames):

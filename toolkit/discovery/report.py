@@ -23,19 +23,12 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from toolkit.plotting import pyplot, save_figure
+
 __all__ = ["write_report", "ranking_rows", "RANKING_COLUMNS"]
 
 RANKING_COLUMNS = ("rank", "candidate", "score (pred. drop)", "actual drop", "gradient (proj.)", "held-out improvement",
                    "strength [interval]", "confusable with", "decision")
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _fmt(x: Any, digits: int = 3) -> str:
@@ -92,7 +85,7 @@ def ranking_rows(result) -> list[list[str]]:
 
 
 def _heatmap(result, path: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     loc = result.localization
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), gridspec_kw={"width_ratios": [1, 1.3]})
     ax = axes[0]
@@ -111,14 +104,11 @@ def _heatmap(result, path: Path) -> Path:
         fig.colorbar(im, ax=ax, fraction=0.046)
     for a in axes:
         a.set_xlabel("frame", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def _split(result, path: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     loc = result.localization
     fig, ax = plt.subplots(figsize=(6, 3))
     f = loc.frames
@@ -136,14 +126,11 @@ def _split(result, path: Path) -> Path:
     ax.set_xlabel("frame", fontsize=8)
     ax.set_ylabel("residual (mm)", fontsize=8)
     ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def _gap_plot(result, path: Path) -> Path:
-    plt = _plt()
+    plt = pyplot()
     series = [("cd_per_frame", "Chamfer (x1e3)"), ("psnr_per_frame", "PSNR (dB), all cameras"),
               ("held_out_loss_per_frame", "held-out camera loss")]
     series = [s for s in series if result.metrics["before"].get(s[0]) is not None]
@@ -165,10 +152,7 @@ def _gap_plot(result, path: Path) -> Path:
         ax.set_xlabel("frame (orange: future)", fontsize=8)
         ax.tick_params(labelsize=7)
     axes.flat[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def _blocks(result, figures: dict[str, str]) -> list[tuple[str, Any]]:
