@@ -169,21 +169,47 @@ def test_local_executor_time_limit_stops_jobs_gracefully(tmp_path):
     assert counts["done"] == 1 and counts["remaining"] == 2
     finished = {e["job"]: e for e in events if e["event"] in ("done", "interrupted")}
     assert finished["j0"]["event"] == "done"
-    # the long jobs were asked to stop (SIGTERM) and returned on their own, in two processes
+    # the long jobs were asked to stop (SIGTERM) and returned on their own, each in its own process
     assert {finished[j]["event"] for j in ("j1", "j2") if j in finished} <= {"interrupted"}
     pids = {e.get("pid") for e in events if e["event"] in ("done", "interrupted") and e.get("pid")}
-    assert len(pids) == 2
+    assert len(pids) == 3
     assert any(e["event"] == "stopping" for e in events)
 
 
+def test_local_executor_gives_each_job_the_least_busy_gpu(tmp_path):
+    from toolkit.benchmark.runner import LocalExecutor, run_jobs
+
+    events = []
+
+    def emit(event, **fields):
+        events.append({"event": event, **fields})
+        return events[-1]
+
+    # two slots on each of two GPUs, listed GPU by GPU as make_executor lists them: two jobs at a
+    # time must run on different GPUs, not both on the first one
+    jobs = [{"id": f"j{i}", "kind": "fit", "folder": str(tmp_path / f"j{i}"), "fingerprint": "x", "seconds": 1.0, "depends": []}
+            for i in range(4)]
+    ex = LocalExecutor(2, ["g0", "g0", "g1", "g1"], fn="tests.bench_helpers:sleepy_job")
+    try:
+        counts = run_jobs(jobs, ex, emit, heartbeat=100)
+    finally:
+        ex.shutdown()
+    assert counts["done"] == 4
+    done = [e for e in events if e["event"] == "done"]
+    assert sorted(e["gpu"] for e in done) == ["g0", "g0", "g1", "g1"]
+    assert len({e["pid"] for e in done}) == 4
+    with pytest.raises(ValueError, match="at least one GPU"):
+        LocalExecutor(1, [])
+
+
 # ------------------------------------------------------------------------------------ the benchmark
-def test_benchmark_runs_jobs_in_two_processes_and_rerun_skips_them(bench, capsys):
+def test_benchmark_runs_jobs_in_parallel_processes_and_rerun_skips_them(bench, capsys):
     out = bench["out"]
     assert bench["rc"] == 0
     markers = [json.loads(p.read_text()) for p in sorted(out.rglob("job.json"))]
     assert len(markers) == 2 + 4 and all(m["status"] == "done" for m in markers)
-    pids = {a["pid"] for m in markers for a in m["attempts"]}
-    assert len(pids) == 2  # two worker processes shared the jobs
+    pids = [a["pid"] for m in markers for a in m["attempts"]]
+    assert len(set(pids)) == len(pids) == 6  # every job ran in a fresh worker process
     # each strategy's run folder links the scene's one physics_input.pt
     for run in sorted((out / "runs").glob("neo_hookean/*/cams3/*")):
         link = run / "physics_input.pt"

@@ -3,9 +3,10 @@
 Parallelism is one independent job per worker: a scene's stage 0, or one strategy's fit of one
 scene. Nothing is data-parallel: no gradient is ever averaged across scenes.
 
-* :class:`LocalExecutor`: a ``concurrent.futures.ProcessPoolExecutor`` (``spawn`` start method)
-  whose workers each own one GPU through ``CUDA_VISIBLE_DEVICES`` (``jobs_per_gpu`` workers may
-  share one: at 10^4 particles a fit does not fill an H100), or N CPU workers.
+* :class:`LocalExecutor`: a ``concurrent.futures.ProcessPoolExecutor`` (``spawn`` start method,
+  a fresh process per job) whose jobs each get the least busy GPU through
+  ``CUDA_VISIBLE_DEVICES`` (``jobs_per_gpu`` jobs may share one: at 10^4 particles a fit does
+  not fill an H100), or N CPU workers.
 * :class:`RayExecutor`: the same jobs as Ray tasks (``num_gpus`` per task), on one machine or a
   Ray cluster of several (``ray start --head`` / ``ray start --address ...`` on the others,
   then ``--executor ray --ray-address auto``). Ray is optional (``pip install projo4d[ray]``);
@@ -52,11 +53,8 @@ def _resolve(fn: str) -> Callable[[dict], dict]:
 
 
 # ------------------------------------------------------------------------------------ executors
-def _init_worker(slots, threads: Optional[int]) -> None:
-    """Worker start: claim a GPU slot (``CUDA_VISIBLE_DEVICES``), thread count, signal handling."""
-    slot = slots.get()
-    if slot is not None:
-        os.environ["CUDA_VISIBLE_DEVICES"] = str(slot)
+def _init_worker(threads: Optional[int]) -> None:
+    """Worker start: thread count and signal handling (each worker runs one job, then exits)."""
     if threads:
         os.environ["PROJO4D_WORKER_THREADS"] = str(threads)
         for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -67,7 +65,9 @@ def _init_worker(slots, threads: Optional[int]) -> None:
     install_stop_handler()
 
 
-def _call(fn: str, job: dict) -> dict:
+def _call(fn: str, job: dict, gpu: Optional[str] = None) -> dict:
+    if gpu is not None:  # a fresh worker: nothing has initialised CUDA yet
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu)
     return _resolve(fn)(job)
 
 
@@ -95,12 +95,14 @@ class _SpawnableMain:
 
 
 class LocalExecutor:
-    """Jobs in worker processes on this machine.
+    """Jobs in worker processes on this machine, one fresh process per job.
 
     Args:
         workers: number of worker processes (jobs at a time).
-        gpus: GPU ids (``CUDA_VISIBLE_DEVICES`` values) handed to the workers in turn; ``None``
-            for CPU workers.
+        gpus: one GPU id (a ``CUDA_VISIBLE_DEVICES`` value) per worker slot, e.g. ``["0", "0",
+            "1", "1"]`` for two jobs on each of two GPUs; ``None`` for CPU workers. Each job
+            goes to the GPU running the fewest jobs when it starts (ties: the first listed), so
+            four stage-0 jobs on four GPUs get one GPU each.
         threads: torch threads per worker.
         fn: ``"module:function"`` run on each job dict (default :data:`JOB_FUNCTION`).
     """
@@ -111,24 +113,35 @@ class LocalExecutor:
                  fn: str = JOB_FUNCTION):
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
+        if gpus is not None and len(gpus) == 0:
+            raise ValueError("gpus must name at least one GPU, or be None for CPU workers")
         ctx = mp.get_context("spawn")
-        self._slots = ctx.Queue()
-        for i in range(workers):
-            self._slots.put(str(gpus[i % len(gpus)]) if gpus else None)
+        self._gpus = [str(g) for g in dict.fromkeys(gpus)] if gpus else []
+        self._load = {g: 0 for g in self._gpus}
+        self._gpu_of: dict = {}
         self.capacity = workers
         self._fn = fn
+        # one job per process: the job's GPU is chosen at submission, before the process starts CUDA
         self._pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                                            initargs=(self._slots, threads))
+                                            initargs=(threads,), max_tasks_per_child=1)
 
     def submit(self, job: dict):
+        gpu = min(self._gpus, key=lambda g: self._load[g]) if self._gpus else None
         with _SpawnableMain():  # workers are spawned on demand, at submission
-            return self._pool.submit(_call, self._fn, job)
+            handle = self._pool.submit(_call, self._fn, job, gpu)
+        if gpu is not None:
+            self._load[gpu] += 1
+            self._gpu_of[handle] = gpu
+        return handle
 
     def wait(self, handles: Sequence, timeout: Optional[float]) -> list:
         done, _ = cf.wait(list(handles), timeout=timeout, return_when=cf.FIRST_COMPLETED)
         return list(done)
 
     def result(self, handle, job: dict) -> dict:
+        gpu = self._gpu_of.pop(handle, None)
+        if gpu is not None:
+            self._load[gpu] -= 1
         try:
             return handle.result()
         except cf.CancelledError:
