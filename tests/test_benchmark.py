@@ -146,6 +146,23 @@ def test_tables_mean_std_of_known_numbers():
     assert "number of cameras" in md and "Pairwise comparisons" in md
 
 
+def test_strip_video_of_more_than_ten_frames(tmp_path):
+    """Frame labels change width at t=10 ("t=9" / "t=10"); every video frame must keep one size."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from toolkit.benchmark.plots import comparison_strip, comparison_strip_video
+
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, 255, (12, 16, 20, 3), dtype=np.uint8)
+    preds = {"joint": gt[:, ::-1].copy(), "progressive": gt.copy()}
+    png = comparison_strip(gt, preds, [9, 10, 11], tmp_path / "strip.png", n_train=9)
+    video = comparison_strip_video(gt, preds, 9, tmp_path / "strip.mp4")
+    assert iio.imread(png).shape[0] > 3 * 16
+    frames = iio.imread(video, index=None) if video.suffix == ".gif" else np.stack(list(iio.imiter(video)))
+    assert frames.shape[0] == 12 and frames.shape[-1] == 3
+
+
 # ------------------------------------------------------------------------------------ executors
 def test_local_executor_time_limit_stops_jobs_gracefully(tmp_path):
     from toolkit.benchmark.runner import LocalExecutor, run_jobs

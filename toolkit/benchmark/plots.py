@@ -196,8 +196,9 @@ def comparison_strip_video(gt: np.ndarray, preds: dict[str, np.ndarray], n_train
     names = ["truth"] + list(preds)
     seqs = [gt] + list(preds.values())
     frames = []
+    digits = len(str(gt.shape[0] - 1))  # one label width for every frame: the video's frames share one size
     for t in range(gt.shape[0]):
-        tag = f"t={t} {'future' if t >= n_train else 'fitted'}"
+        tag = f"t={t:0{digits}d} {'future' if t >= n_train else 'fitted'}"
         img = _grid([[_upscale(seq[t]) for seq in seqs]], [tag], names)
         frames.append(img[: img.shape[0] // 2 * 2, : img.shape[1] // 2 * 2])
     path = Path(path)
