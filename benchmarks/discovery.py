@@ -302,7 +302,12 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     thresholds = Thresholds.load(args.thresholds) if args.thresholds else DEFAULT_THRESHOLDS
-    i, n = (int(x) for x in args.shard.split("/"))
+    try:
+        i, n = (int(x) for x in args.shard.split("/"))
+        if not 0 <= i < n:
+            raise ValueError
+    except ValueError:
+        p.error(f"--shard must be I/N with 0 <= I < N, such as 0/4; got {args.shard!r}")
     results_file = out / (f"results_{i}of{n}.jsonl" if n > 1 else "results.jsonl")
     suite = build_suite(args)
     done = {}

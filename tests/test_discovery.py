@@ -227,3 +227,27 @@ def test_run_folder_errors(tmp_path):
         load_fitted_module(tmp_path)
     with pytest.raises(ValueError, match="give a run folder"):
         load_fitted_module(input_path=tmp_path / "x.pt")
+
+
+def test_discover_command_names_bad_input(tmp_path):
+    from toolkit.cli import main
+
+    def error(*argv):
+        with pytest.raises(SystemExit) as exc:
+            main(["discover", *map(str, argv)])
+        return str(exc.value)
+
+    assert "is not a folder" in error(tmp_path / "missing")
+    run = tmp_path / "run"
+    run.mkdir()
+    assert "has no physics_input.pt" in error(run)
+    (run / "physics_input.pt").write_bytes(b"")
+    assert "has no physics/checkpoints/last.ckpt (fit it first)" in error(run)
+    (run / "physics" / "checkpoints").mkdir(parents=True)
+    (run / "physics" / "checkpoints" / "last.ckpt").write_bytes(b"")
+    msg = error(run, "--candidates", "ground_friction", "magnetism")
+    assert "--candidates" in msg and "magnetism" in msg and "air_drag" in msg
+    bad = tmp_path / "thr.json"
+    bad.write_text("{not json")
+    assert f"--thresholds {bad}" in error(run, "--thresholds", bad)
+    assert "--top-k must be >= 1" in error(run, "--top-k", "0")

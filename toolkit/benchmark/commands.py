@@ -29,21 +29,16 @@ import argparse
 import json
 from pathlib import Path
 
+from toolkit.commands.arguments import json_arg
+
 __all__ = ["configure", "run", "spec_from_args"]
-
-
-def _json_arg(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise argparse.ArgumentTypeError(f"not valid JSON: {text!r} ({err.msg})") from None
 
 
 def _strategy_option(text: str) -> tuple[str, dict]:
     label, sep, value = text.partition("=")
     if not sep or not label:
         raise argparse.ArgumentTypeError(f"expected LABEL=JSON such as cyclic='{{\"cycles\": 2}}', got {text!r}")
-    opts = _json_arg(value)
+    opts = json_arg(value)
     if not isinstance(opts, dict):
         raise argparse.ArgumentTypeError(f"the options of {label} must be a JSON object, got {value!r}")
     return label, opts
@@ -68,7 +63,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--per-family", type=int, help="scenes per family (to generate, or at most this many of the suite)")
     src.add_argument("--suite-size", choices=["small", "full"], help="size preset of generated scenes (default: --size)")
     src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
-    src.add_argument("--suite-overrides", type=_json_arg, help="JSON SceneSpec fields for every generated scene")
+    src.add_argument("--suite-overrides", type=json_arg, help="JSON SceneSpec fields for every generated scene")
     src.add_argument("--material", help="material of --scenes (default: each scene's recorded ground truth)")
     src.add_argument("--dataset", help="config prefix: the material's configs/<dataset>_*.yaml (default synthetic for "
                                        "suites, pacnerf for --scenes)")
@@ -88,7 +83,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--stage0", help="'full', 'tiny' or JSON of Stage0Schedule fields")
     size.add_argument("--stage0-iterations", type=int, help="GIC's stage-0 schedule scaled to this many iterations")
     size.add_argument("--geometry", choices=["stage0", "oracle"], help="oracle: ground-truth geometry instead of stage 0")
-    size.add_argument("--sim", type=_json_arg, help='JSON SimConfig fields, e.g. \'{"substeps": 100}\' (merged)')
+    size.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"substeps": 100}\' (merged)')
     size.add_argument("--downscale", type=int, help="integer image downscale factor")
     size.add_argument("--n-train", type=int, help="training frames (default: the scene's split)")
     size.add_argument("--seed", type=int)
@@ -168,7 +163,7 @@ def spec_from_args(args: argparse.Namespace):
     if args.stage0 and args.stage0_iterations:
         raise BenchmarkError("give --stage0 or --stage0-iterations, not both")
     if args.stage0:
-        overrides["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else _json_arg(args.stage0)
+        overrides["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else json_arg(args.stage0)
     elif args.stage0_iterations:
         overrides["stage0"] = scaled_stage0(args.stage0_iterations)
     iterations = {k: getattr(args, k) for k in ("stage1_iterations", "stage2_iterations", "appearance_iterations")

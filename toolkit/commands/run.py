@@ -11,17 +11,11 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from toolkit.commands.arguments import json_arg
+
 __all__ = ["configure", "run"]
-
-
-def _json_arg(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as err:
-        raise argparse.ArgumentTypeError(f"not valid JSON: {text!r} ({err.msg})") from None
 
 
 def _key_value(text: str) -> tuple[str, float]:
@@ -39,16 +33,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="YAML file with RunSettings fields (command-line flags override it)")
     parser.add_argument("--out", help="run folder (default runs/<scene name>)")
     parser.add_argument("--material", help="registered material (default neo_hookean)")
-    parser.add_argument("--material-options", type=_json_arg, help='JSON, e.g. \'{"yield_rule": "pacnerf"}\'')
+    parser.add_argument("--material-options", type=json_arg, help='JSON, e.g. \'{"yield_rule": "pacnerf"}\'')
     parser.add_argument("--param", action="append", type=_key_value, default=[], help="starting guess NAME=VALUE (repeatable)")
     parser.add_argument("--curriculum", help="strategy name or schedule string (default progressive)")
-    parser.add_argument("--curriculum-options", type=_json_arg, help='JSON options of a named strategy')
+    parser.add_argument("--curriculum-options", type=json_arg, help='JSON options of a named strategy')
     parser.add_argument("--cameras", help="'sparse', 'all' or comma-separated 0-based indices")
     parser.add_argument("--n-train", type=int)
     parser.add_argument("--downscale", type=int)
     parser.add_argument("--stage0", help="'full', 'tiny' or JSON of Stage0Schedule fields")
     parser.add_argument("--geometry", choices=["stage0", "oracle"])
-    parser.add_argument("--sim", type=_json_arg, help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\'')
+    parser.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\'')
     parser.add_argument("--device", help="auto, cpu or cuda")
     parser.add_argument("--seed", type=int)
 
@@ -104,7 +98,7 @@ def settings_from_args(args: argparse.Namespace):
     if args.cameras:
         over["cameras"] = args.cameras if args.cameras in ("sparse", "all") else [int(c) for c in args.cameras.split(",")]
     if args.stage0:
-        over["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else _json_arg(args.stage0)
+        over["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else json_arg(args.stage0)
     if args.param:
         over["initial_params"] = {**(base.get("initial_params") or {}), **dict(args.param)}
     merged = {**base, **{k: v for k, v in over.items() if v is not None}}

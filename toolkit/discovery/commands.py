@@ -30,9 +30,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from toolkit.discovery.calibration import Thresholds
+    from toolkit.discovery.candidates import library
     from toolkit.discovery.workflow import discover
 
-    out = Path(args.out) if args.out else Path(args.run_dir) / "discovery"
+    run_dir = Path(args.run_dir)
+    if not run_dir.is_dir():
+        raise SystemExit(f"projo4d discover: {run_dir} is not a folder (expected a run folder of `projo4d run`)")
+    for need, hint in (("physics_input.pt", "written after stage 0"), ("physics/checkpoints/last.ckpt", "fit it first")):
+        if not (run_dir / need).is_file():
+            raise SystemExit(f"projo4d discover: {run_dir} has no {need} ({hint})")
+    if args.top_k < 1:
+        raise SystemExit(f"projo4d discover: --top-k must be >= 1, got {args.top_k}")
+    try:
+        library(args.candidates)
+    except ValueError as err:
+        raise SystemExit(f"projo4d discover: --candidates: {err}") from None
+    if args.thresholds is not None:
+        try:
+            Thresholds.load(args.thresholds)
+        except (ValueError, OSError, TypeError) as err:
+            raise SystemExit(f"projo4d discover: --thresholds {args.thresholds}: {err} (expected the JSON written by "
+                             "benchmarks/discovery.py --calibrate)") from None
+
+    out = Path(args.out) if args.out else run_dir / "discovery"
     result = discover(args.run_dir, out, candidates=args.candidates, top_k=args.top_k, holdout_frames=args.holdout_frames,
                       refit_iterations=args.iterations, final_iterations=args.final_iterations, thresholds=args.thresholds,
                       emd=not args.no_emd, device=args.device)
