@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
+import sys
 import tarfile
 import time
 from pathlib import Path
@@ -18,6 +20,7 @@ import pytest
 from toolkit.cli import main
 
 pytestmark = pytest.mark.xdist_group("benchmark")
+ROOT = Path(__file__).resolve().parents[1]
 
 SUITE_OVERRIDES = dict(width=32, height=32, n_frames=6, n_train_frames=5, dx=0.04, particle_spacing=0.01, substeps=80,
                        supersample=1, ground_plane=False)
@@ -217,6 +220,41 @@ def test_local_executor_gives_each_job_the_least_busy_gpu(tmp_path):
     assert len({e["pid"] for e in done}) == 4
     with pytest.raises(ValueError, match="at least one GPU"):
         LocalExecutor(1, [])
+
+
+_NOT_PYTHON_MAIN = r"""
+import json, sys, types
+from pathlib import Path
+main = types.ModuleType("__main__")
+main.__file__ = sys.argv[1]          # a page that is not Python, as the docs test runs tutorials
+sys.modules["__main__"] = main
+from toolkit.benchmark.runner import LocalExecutor, run_jobs
+tmp = Path(sys.argv[2])
+jobs = [{"id": f"j{i}", "kind": "fit", "folder": str(tmp / f"j{i}"), "fingerprint": "x", "seconds": 0.3 * (i % 3),
+         "depends": []} for i in range(7)]
+events = []
+ex = LocalExecutor(2, fn="tests.bench_helpers:sleepy_job")
+try:
+    counts = run_jobs(jobs, ex, lambda event, **f: events.append({"event": event, **f}), heartbeat=100)
+finally:
+    ex.shutdown()
+print(json.dumps({"counts": counts, "pids": sorted({e["pid"] for e in events if e["event"] == "done"})}))
+"""
+
+
+def test_local_executor_starts_every_worker_when_main_is_not_python(tmp_path):
+    """Workers are spawned for every job, also after the first ones finished, with a ``__main__``
+    file that spawn cannot re-run (a documentation page): none of them may die at start."""
+    page = tmp_path / "page.md"
+    page.write_text("# A page\n\nstage 0 (4D Gaussians) is not Python.\n")
+    proc = subprocess.run([sys.executable, "-c", _NOT_PYTHON_MAIN, str(page), str(tmp_path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=240,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), "CUDA_VISIBLE_DEVICES": ""})
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "SyntaxError" not in proc.stderr, proc.stderr[-4000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["counts"]["done"] == 7 and out["counts"]["remaining"] == 0
+    assert len(out["pids"]) == 7  # a fresh process per job
 
 
 # ------------------------------------------------------------------------------------ the benchmark

@@ -3,9 +3,8 @@
 Parallelism is one independent job per worker: a scene's stage 0, or one strategy's fit of one
 scene. Nothing is data-parallel: no gradient is ever averaged across scenes.
 
-* :class:`LocalExecutor`: a ``concurrent.futures.ProcessPoolExecutor`` (``spawn`` start method,
-  a fresh process per job) whose jobs each get the least busy GPU through
-  ``CUDA_VISIBLE_DEVICES`` (``jobs_per_gpu`` jobs may share one: at 10^4 particles a fit does
+* :class:`LocalExecutor`: a fresh ``spawn`` process per job, started with the job, which gets the
+  least busy GPU through ``CUDA_VISIBLE_DEVICES`` (``jobs_per_gpu`` jobs may share one: at 10^4 particles a fit does
   not fill an H100), or N CPU workers.
 * :class:`RayExecutor`: the same jobs as Ray tasks (``num_gpus`` per task), on one machine or a
   Ray cluster of several (``ray start --head`` / ``ray start --address ...`` on the others,
@@ -37,6 +36,7 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -65,12 +65,6 @@ def _init_worker(threads: Optional[int]) -> None:
     install_stop_handler()
 
 
-def _call(fn: str, job: dict, gpu: Optional[str] = None) -> dict:
-    if gpu is not None:  # a fresh worker: nothing has initialised CUDA yet
-        os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu)
-    return _resolve(fn)(job)
-
-
 class _SpawnableMain:
     """While workers are spawned, hide a ``__main__.__file__`` that is not a Python file.
 
@@ -94,8 +88,51 @@ class _SpawnableMain:
         return False
 
 
+class _WorkerDied(RuntimeError):
+    """The job's process ended without returning a result (killed, or it crashed)."""
+
+
+class _JobRaised(RuntimeError):
+    """The job function raised; the message carries the worker's traceback."""
+
+
+def _job_process(conn, fn: str, job: dict, gpu: Optional[str], threads: Optional[int]) -> None:
+    """Body of one job's process: set the GPU before anything starts CUDA, run, send the result."""
+    if gpu is not None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu)
+    _init_worker(threads)
+    try:
+        message = ("ok", _resolve(fn)(job))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which records the job
+        import traceback
+
+        message = ("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+    conn.send(message)
+    conn.close()
+
+
+def _watch(process, conn, future: cf.Future) -> None:
+    """Parent-side thread: wait for the job's result (or its process's end) and settle its future."""
+    try:
+        message = conn.recv()
+    except (EOFError, OSError):
+        message = None
+    process.join()
+    conn.close()
+    if message is None:
+        future.set_exception(_WorkerDied(f"exit code {process.exitcode}"))
+    elif message[0] == "ok":
+        future.set_result(message[1])
+    else:
+        future.set_exception(_JobRaised(message[1]))
+
+
 class LocalExecutor:
-    """Jobs in worker processes on this machine, one fresh process per job.
+    """Jobs in worker processes on this machine, one fresh ``spawn`` process per job.
+
+    A process is started when its job is submitted (never later, from another thread), so the
+    job's GPU is set before anything in it starts CUDA, and a process crashing takes only its
+    own job with it.
 
     Args:
         workers: number of worker processes (jobs at a time).
@@ -115,20 +152,27 @@ class LocalExecutor:
             raise ValueError(f"workers must be >= 1, got {workers}")
         if gpus is not None and len(gpus) == 0:
             raise ValueError("gpus must name at least one GPU, or be None for CPU workers")
-        ctx = mp.get_context("spawn")
+        self._ctx = mp.get_context("spawn")
         self._gpus = [str(g) for g in dict.fromkeys(gpus)] if gpus else []
         self._load = {g: 0 for g in self._gpus}
         self._gpu_of: dict = {}
+        self._process_of: dict = {}
         self.capacity = workers
+        self._threads = threads
         self._fn = fn
-        # one job per process: the job's GPU is chosen at submission, before the process starts CUDA
-        self._pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                                            initargs=(threads,), max_tasks_per_child=1)
 
-    def submit(self, job: dict):
+    def submit(self, job: dict) -> cf.Future:
         gpu = min(self._gpus, key=lambda g: self._load[g]) if self._gpus else None
-        with _SpawnableMain():  # workers are spawned on demand, at submission
-            handle = self._pool.submit(_call, self._fn, job, gpu)
+        receive, send = self._ctx.Pipe(duplex=False)
+        process = self._ctx.Process(target=_job_process, args=(send, self._fn, job, gpu, self._threads),
+                                    name=f"projo4d-job-{job['id']}")
+        with _SpawnableMain():
+            process.start()
+        send.close()  # the child holds the sending end: a dead child reads as end-of-file
+        handle: cf.Future = cf.Future()
+        handle.set_running_or_notify_cancel()
+        threading.Thread(target=_watch, args=(process, receive, handle), daemon=True).start()
+        self._process_of[handle] = process
         if gpu is not None:
             self._load[gpu] += 1
             self._gpu_of[handle] = gpu
@@ -142,23 +186,20 @@ class LocalExecutor:
         gpu = self._gpu_of.pop(handle, None)
         if gpu is not None:
             self._load[gpu] -= 1
+        self._process_of.pop(handle, None)
         try:
             return handle.result()
-        except cf.CancelledError:
-            return {"id": job["id"], "status": "interrupted", "error": "cancelled before it started"}
-        except cf.process.BrokenProcessPool as exc:
+        except _WorkerDied as exc:
             return {"id": job["id"], "status": "interrupted",
-                    "error": f"a worker process died ({exc}); its output is in the job's log or on stderr"}
-        except Exception as exc:  # noqa: BLE001 - an error outside the job function
+                    "error": f"its worker process died ({exc}); its output is in the job's log or on stderr"}
+        except Exception as exc:  # noqa: BLE001 - an error outside the job's own error handling
             return {"id": job["id"], "status": "interrupted", "error": f"{type(exc).__name__}: {exc}"}
 
     def _pids(self) -> list[int]:
-        return list((getattr(self._pool, "_processes", None) or {}).keys())
+        return [p.pid for p in self._process_of.values() if p.pid is not None and p.is_alive()]
 
     def interrupt(self, handles: Sequence, grace: float) -> None:
         """SIGTERM every worker, wait up to ``grace`` seconds for the running jobs, then SIGKILL."""
-        for h in handles:
-            h.cancel()
         pids = self._pids()
         for pid in pids:
             try:
@@ -175,7 +216,10 @@ class LocalExecutor:
             cf.wait(list(handles), timeout=10)
 
     def shutdown(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        """Wait for the processes still running (the scheduler has stopped or collected them)."""
+        for process in list(self._process_of.values()):
+            process.join()
+        self._process_of.clear()
 
 
 class InlineExecutor:
