@@ -219,6 +219,7 @@ def markdown(summary: dict, title: str) -> str:
         return "-" if x is None else f"{100 * x:.0f} %"
 
     s = summary
+    obs = s.get("observable") or {}
     lines = [f"**{title}**: {s['n_hidden']} scenes with a hidden effect, {s['n_null']} null scenes.", "",
              "| metric | value |", "|---|---|",
              f"| top-1 identification accuracy | {pct(s.get('top1'))} |",
@@ -226,10 +227,9 @@ def markdown(summary: dict, title: str) -> str:
              f"| median future-Chamfer gap shrink (identified) | {pct(s.get('median_gap_shrink_identified'))} |",
              f"| median future-Chamfer gap shrink (all hidden physics effects, 0 when missed) | {pct(s.get('median_gap_shrink_all'))} |",
              f"| top-1 / top-3 on hidden physics effects the data show (refitting the true effect halves the future gap: "
-             f"{(s.get('observable') or {}).get('n', 0)} of {(s.get('observable') or {}).get('of', 0)} scenes) | "
-             f"{pct((s.get('observable') or {}).get('top1'))} / {pct((s.get('observable') or {}).get('top3'))} |",
+             f"{obs.get('n', 0)} of {obs.get('of', 0)} scenes) | {pct(obs.get('top1'))} / {pct(obs.get('top3'))} |",
              f"| median future-Chamfer gap shrink on those (the decision's refit; 0 for \"no missing effect\") | "
-             f"{pct((s.get('observable') or {}).get('median_gap_shrink'))} |",
+             f"{pct(obs.get('median_gap_shrink'))} |",
              f"| false-positive rate on null scenes (thresholds used) | {pct(s.get('false_positive_rate'))} |",
              f"| false-positive rate on null scenes (2-fold cross-calibrated) | {pct(s.get('false_positive_rate_cross'))} |",
              "", "| hidden effect | scenes | top-1 | top-3 | median gap shrink | median strength error (truth) |",

@@ -88,43 +88,34 @@ class _SpawnableMain:
         return False
 
 
-class _WorkerDied(RuntimeError):
-    """The job's process ended without returning a result (killed, or it crashed)."""
-
-
-class _JobRaised(RuntimeError):
-    """The job function raised; the message carries the worker's traceback."""
-
-
 def _job_process(conn, fn: str, job: dict, gpu: Optional[str], threads: Optional[int]) -> None:
     """Body of one job's process: set the GPU before anything starts CUDA, run, send the result."""
     if gpu is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu)
     _init_worker(threads)
     try:
-        message = ("ok", _resolve(fn)(job))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which records the job
+        result = _resolve(fn)(job)
+    except BaseException as exc:  # noqa: BLE001 - an error outside the job's own error handling
         import traceback
 
-        message = ("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
-    conn.send(message)
+        traceback.print_exc()
+        result = {"id": job["id"], "status": "interrupted", "error": f"{type(exc).__name__}: {exc}"}
+    conn.send(result)
     conn.close()
 
 
-def _watch(process, conn, future: cf.Future) -> None:
+def _watch(process, conn, future: cf.Future, job_id: str) -> None:
     """Parent-side thread: wait for the job's result (or its process's end) and settle its future."""
     try:
-        message = conn.recv()
-    except (EOFError, OSError):
-        message = None
+        result = conn.recv()
+    except (EOFError, OSError):  # the process ended without sending one
+        result = None
     process.join()
     conn.close()
-    if message is None:
-        future.set_exception(_WorkerDied(f"exit code {process.exitcode}"))
-    elif message[0] == "ok":
-        future.set_result(message[1])
-    else:
-        future.set_exception(_JobRaised(message[1]))
+    if result is None:
+        result = {"id": job_id, "status": "interrupted", "error": f"its worker process died (exit code "
+                  f"{process.exitcode}); its output is in the job's log or on stderr"}
+    future.set_result(result)
 
 
 class LocalExecutor:
@@ -155,8 +146,7 @@ class LocalExecutor:
         self._ctx = mp.get_context("spawn")
         self._gpus = [str(g) for g in dict.fromkeys(gpus)] if gpus else []
         self._load = {g: 0 for g in self._gpus}
-        self._gpu_of: dict = {}
-        self._process_of: dict = {}
+        self._running: dict = {}  # handle -> (process, GPU or None)
         self.capacity = workers
         self._threads = threads
         self._fn = fn
@@ -171,32 +161,24 @@ class LocalExecutor:
         send.close()  # the child holds the sending end: a dead child reads as end-of-file
         handle: cf.Future = cf.Future()
         handle.set_running_or_notify_cancel()
-        threading.Thread(target=_watch, args=(process, receive, handle), daemon=True).start()
-        self._process_of[handle] = process
+        threading.Thread(target=_watch, args=(process, receive, handle, job["id"]), daemon=True).start()
+        self._running[handle] = (process, gpu)
         if gpu is not None:
             self._load[gpu] += 1
-            self._gpu_of[handle] = gpu
         return handle
 
     def wait(self, handles: Sequence, timeout: Optional[float]) -> list:
         done, _ = cf.wait(list(handles), timeout=timeout, return_when=cf.FIRST_COMPLETED)
         return list(done)
 
-    def result(self, handle, job: dict) -> dict:
-        gpu = self._gpu_of.pop(handle, None)
+    def result(self, handle, job: dict) -> dict:  # noqa: ARG002 - the job is in the result already
+        _, gpu = self._running.pop(handle)
         if gpu is not None:
             self._load[gpu] -= 1
-        self._process_of.pop(handle, None)
-        try:
-            return handle.result()
-        except _WorkerDied as exc:
-            return {"id": job["id"], "status": "interrupted",
-                    "error": f"its worker process died ({exc}); its output is in the job's log or on stderr"}
-        except Exception as exc:  # noqa: BLE001 - an error outside the job's own error handling
-            return {"id": job["id"], "status": "interrupted", "error": f"{type(exc).__name__}: {exc}"}
+        return handle.result()
 
     def _pids(self) -> list[int]:
-        return [p.pid for p in self._process_of.values() if p.pid is not None and p.is_alive()]
+        return [p.pid for p, _ in self._running.values() if p.is_alive()]
 
     def interrupt(self, handles: Sequence, grace: float) -> None:
         """SIGTERM every worker, wait up to ``grace`` seconds for the running jobs, then SIGKILL."""
@@ -217,9 +199,8 @@ class LocalExecutor:
 
     def shutdown(self) -> None:
         """Wait for the processes still running (the scheduler has stopped or collected them)."""
-        for process in list(self._process_of.values()):
+        for process, _ in self._running.values():
             process.join()
-        self._process_of.clear()
 
 
 class InlineExecutor:

@@ -34,8 +34,6 @@ import math
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
-import numpy as np
-
 __all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
            "write_tables", "mean_std"]
 
@@ -269,12 +267,11 @@ def _claims(material: str, cams, records: Sequence[dict], strategies: Sequence[s
             for recs in by_scene.values():
                 if a in recs and b in recs:
                     va, vb = _value(recs[a], c["key"]), _value(recs[b], c["key"])
-                    if va is not None and vb is not None:
+                    if all(v is not None and math.isfinite(v) for v in (va, vb)):
                         pairs.append((va, vb))
             if not pairs:
                 continue
-            pa = float(np.mean([p[0] for p in pairs]))
-            pb = float(np.mean([p[1] for p in pairs]))
+            pa, pb = (mean_std(p[i] for p in pairs)["mean"] for i in (0, 1))
             lower = c["better"] == "lower"
             wins = sum((va < vb) if lower else (va > vb) for va, vb in pairs)
             better = pa < pb if lower else pa > pb

@@ -46,16 +46,17 @@ def run(args: argparse.Namespace) -> int:
         library(args.candidates)
     except ValueError as err:
         raise SystemExit(f"projo4d discover: --candidates: {err}") from None
+    thresholds = None
     if args.thresholds is not None:
         try:
-            Thresholds.load(args.thresholds)
+            thresholds = Thresholds.load(args.thresholds)
         except (ValueError, OSError, TypeError) as err:
             raise SystemExit(f"projo4d discover: --thresholds {args.thresholds}: {err} (expected the JSON written by "
                              "benchmarks/discovery.py --calibrate)") from None
 
     out = Path(args.out) if args.out else run_dir / "discovery"
     result = discover(args.run_dir, out, candidates=args.candidates, top_k=args.top_k, holdout_frames=args.holdout_frames,
-                      refit_iterations=args.iterations, final_iterations=args.final_iterations, thresholds=args.thresholds,
+                      refit_iterations=args.iterations, final_iterations=args.final_iterations, thresholds=thresholds,
                       emd=not args.no_emd, device=args.device)
     print(result.verdict)
     print(f"report: {out / 'report.html'}")
