@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal, Mapping
 
+import numpy as np
 import torch
 
 __all__ = ["MaterialParam", "Material", "MaterialError", "lame_parameters"]
@@ -206,6 +207,38 @@ class Material:
             # ranges are intervals: the extremes being valid means every row is
             p.check(float(rows[:, i].min()), self.name)
             p.check(float(rows[:, i].max()), self.name)
+
+    # ----------------------------------------------------------------- time step
+    def wave_speed(self, values: Mapping[str, Any], density: float) -> np.ndarray:
+        """Speed of the fastest small-strain wave, m/s (the explicit time step's limit).
+
+        The default is the elastic P-wave ``sqrt((lambda + 2 mu) / rho)`` from ``E`` and ``nu``
+        (``(lambda + 2 mu) = E (1 - nu) / ((1 + nu)(1 - 2 nu))``) when the material has both, else 0
+        (no known limit). Materials with other parameters override it.
+
+        Args:
+            values: physical parameters; each a float or an array (one entry per particle).
+            density: kg/m^3.
+
+        Returns:
+            array of wave speeds (shape of the broadcast values), m/s.
+        """
+        if "E" in values and "nu" in values:
+            E = np.asarray(values["E"], np.float64)
+            nu = np.asarray(values["nu"], np.float64)
+            modulus = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+            return np.sqrt(np.maximum(modulus, 0.0) / density)
+        return np.zeros(())
+
+    def viscous_dt(self, values: Mapping[str, Any], density: float, dx: float) -> np.ndarray:
+        """Largest stable substep of the explicit viscous term, seconds (``inf`` without one).
+
+        Args:
+            values: physical parameters (floats or per-particle arrays).
+            density: kg/m^3.
+            dx: grid spacing, metres.
+        """
+        return np.full((), np.inf)
 
     # ----------------------------------------------------------------- kernels
     def build_update(self):  # pragma: no cover - abstract

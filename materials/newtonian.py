@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from materials import register_material
@@ -40,6 +41,16 @@ class Newtonian(Material):
 
     params = (VISCOSITY, BULK_MODULUS)
     tracks_volume_only = True
+
+    def wave_speed(self, values, density):
+        """Pressure wave ``sqrt(7 kappa / rho)``: ``d/dJ kappa (J - J^-6) = 7 kappa`` at J = 1 (m/s)."""
+        return np.sqrt(7.0 * np.asarray(values["kappa"], np.float64) / density)
+
+    def viscous_dt(self, values, density, dx):
+        """Explicit diffusion limit ``dt <= rho dx^2 / (6 mu)`` (s); ``tau = mu J sym(C)`` is a
+        viscosity of mu / 2 in ``2 mu_s D`` form, so this keeps a factor 2 of margin."""
+        mu = np.asarray(values["mu"], np.float64)
+        return density * dx**2 / (6.0 * np.maximum(mu, 1e-30))
 
     def build_update(self):
         return _update

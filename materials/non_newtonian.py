@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from materials import register_material
@@ -55,6 +56,12 @@ class NonNewtonian(Material):
         MaterialParam("plastic_viscosity", 1.0, "log10", low=0.0, high=1e9, lr=0.1, units="Pa s", description="plastic viscosity eta"),
     )
     uses_svd = True
+
+    def wave_speed(self, values, density):
+        """P-wave ``sqrt((kappa + 4 mu / 3) / rho)`` (m/s); the viscous return mapping is implicit,
+        so the plastic viscosity sets no limit."""
+        modulus = np.asarray(values["kappa"], np.float64) + 4.0 / 3.0 * np.asarray(values["mu"], np.float64)
+        return np.sqrt(np.maximum(modulus, 0.0) / density)
 
     def build_update(self):
         return make_isotropic_update(_principal)

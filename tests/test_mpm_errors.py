@@ -87,14 +87,39 @@ def test_bad_parameter_tensors_and_shapes(device):
 
 
 def test_cfl_violation_reports_frame_and_substep(device):
-    sim = _sim(device, substeps=4, ground_height=None, margin=3.0)
+    # auto_substeps off: the configured 4 substeps are too few for 4 m/s at dx = 0.05
+    sim = _sim(device, substeps=4, ground_height=None, margin=3.0, auto_substeps=False)
     x0 = block((3, 3, 3), 0.02, (0.5, 0.5, 0.5))
-    with pytest.raises(CFLError, match=r"CFL violation at frame 0 \(substep 0 of 4"):
+    with pytest.raises(CFLError, match=r"CFL violation at frame 0 \(substep 0 of 4") as info:
         sim.rollout(x0, torch.tensor([4.0, 0.0, 0.0]), sim.material.pack({"E": 1e3}), n_frames=2)
+    # the real speed (4 m/s, no gravity) and a count that is stable: 4 m/s * dt <= 0.4 * 0.05 m needs >= 9
+    msg = str(info.value)
+    assert "up to 4 m/s" in msg and "limit 1.92 m/s at 4 substeps" in msg
+    stable = int(msg.split("about ")[1].split(" substeps")[0])
+    assert stable >= 9
+
+
+def test_cfl_message_reports_the_real_speed_of_a_fast_body(device):
+    """With v0 = 100 m/s the message used to say 'max speed 0 m/s' (the state after the failure)."""
+    sim = _sim(device, substeps=10, margin=0.5, auto_substeps=False)
+    x0 = block((3, 3, 3), 0.02, (0.5, 0.3, 0.5))
+    with pytest.raises(CFLError) as info:
+        sim.rollout(x0, torch.tensor([100.0, 0.0, 0.0]), sim.material.pack({"E": 1e4}), n_frames=1)
+    msg = str(info.value)
+    speed = float(msg.split("up to ")[1].split(" m/s")[0])
+    assert 99.0 <= speed <= 101.0, msg  # 100 m/s and at most one substep of gravity
+    stable = int(msg.split("about ")[1].split(" substeps")[0])
+    assert stable >= 100.0 / 24.0 / (0.4 * 0.05)  # >= 209 substeps keep 100 m/s under 0.4 dx per substep
+    # ... and the planner (auto_substeps, the default) gives a count that runs
+    ok = _sim(device, substeps=10, margin=0.5)
+    out = ok.rollout(x0, torch.tensor([100.0, 0.0, 0.0]), ok.material.pack({"E": 1e4}), n_frames=1)
+    assert out.substeps >= 209 and ok.last_plan.reason == "speed"
+    assert out.positions[-1, :, 0].mean().item() == pytest.approx(x0[:, 0].mean().item() + 100.0 / 24.0, abs=1e-3)
 
 
 def test_auto_dt_halving_recovers(device):
-    sim = _sim(device, substeps=4, ground_height=None, margin=3.0, auto_dt_halving=True, max_dt_halvings=3)
+    sim = _sim(device, substeps=4, ground_height=None, margin=3.0, auto_dt_halving=True, max_dt_halvings=3,
+               auto_substeps=False)
     x0 = block((3, 3, 3), 0.02, (0.5, 0.5, 0.5))
     out = sim.rollout(x0, torch.tensor([4.0, 0.0, 0.0]), sim.material.pack({"E": 1e3}), n_frames=2)
     assert out.substeps == 16  # 4 m/s * dt <= 0.4 * 0.05 m needs dt <= 5 ms: 4 -> 8 -> 16 substeps
@@ -102,7 +127,7 @@ def test_auto_dt_halving_recovers(device):
 
 
 def test_blow_up_is_reported_not_hung(device):
-    sim = _sim(device, substeps=2)
+    sim = _sim(device, substeps=2, auto_substeps=False)
     x0 = block((4, 4, 4), 0.025, (0.5, 0.05, 0.5))
     with pytest.raises((NaNError, CFLError), match=r"at frame \d+"):
         sim.rollout(x0, torch.tensor([0.0, -1.0, 0.0]), sim.material.pack({"E": 1e9, "nu": 0.3}), n_frames=5)

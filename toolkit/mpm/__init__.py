@@ -3,7 +3,8 @@
 >>> from toolkit.mpm import MPMSimulator, SimConfig
 """
 
-from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig, SimulationError
+from toolkit.mpm.config import CFLError, GridTooLargeError, NaNError, OutOfDomainError, SimConfig, SimulationError
+from toolkit.mpm.planning import SubstepPlan
 from toolkit.mpm.simulator import GridSpec, MPMSimulator, RolloutResult, SimulationResult
 
 __all__ = [
@@ -16,4 +17,6 @@ __all__ = [
     "OutOfDomainError",
     "CFLError",
     "NaNError",
+    "GridTooLargeError",
+    "SubstepPlan",
 ]

@@ -12,6 +12,7 @@ __all__ = [
     "OutOfDomainError",
     "CFLError",
     "NaNError",
+    "GridTooLargeError",
     "BOUNDARY_MODES",
 ]
 
@@ -41,18 +42,27 @@ class NaNError(SimulationError):
     """A particle position or velocity became NaN or infinite."""
 
 
+class GridTooLargeError(SimulationError):
+    """The grid (and the buffers a rollout needs) would not fit the memory limit; raised before any allocation."""
+
+
 @dataclass
 class SimConfig:
     """Settings of the MLS-MPM simulator (DESIGN section 4).
 
     Attributes:
         dx: grid spacing, metres.
-        substeps: substeps per frame; ``dt = frame_dt / substeps``.
+        substeps: substeps per frame; ``dt = frame_dt / substeps``. With ``auto_substeps`` this is
+            the minimum: a rollout uses more when the material's wave speed or the initial speed
+            asks for it (see :meth:`MPMSimulator.plan_substeps`).
         frame_dt: time between output frames, seconds (1/24 for 24 fps).
         density: kg/m^3, fixed (under gravity only E/rho is identifiable).
         particle_volume: m^3 per particle; ``None`` means ``(dx/2)^3``.
         gravity: default gravity, m/s^2 (the simulator's inputs may override it).
-        ground_height: y of the ground plane (normal +y), metres; ``None`` disables it.
+        ground_height: y of the ground plane (normal +y), metres; ``None`` disables it. The ground
+            nodes are the grid layers with ``y <= ground_height`` decided by an integer layer index
+            computed in float64 (:meth:`GridSpec.ground_layer`), so the result does not depend on
+            where the grid starts.
         boundary: ground contact mode: ``sticky`` (v = 0), ``slip`` (normal velocity removed) or
             ``separate`` (approaching normal velocity removed).
         domain: ``(lower, upper)`` corners of the grid in metres, or ``None`` to size it from the
@@ -67,9 +77,20 @@ class SimConfig:
         cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
         graphs: capture chains of substeps as Warp graphs and replay them (removes the Python
             launch overhead that dominates small GPU problems): ``"auto"`` (CUDA only), True, False.
+        auto_substeps: plan the substeps of every rollout from the material's wave speed at the
+            rollout's parameters (``wave_cfl``) and from the initial particle speed (``cfl``); the
+            plan is at least ``substeps`` and is rounded up to ``substeps * 2^(k/4)``, so it takes
+            few distinct values. ``False`` uses ``substeps`` as given.
+        wave_cfl: the fastest material wave (elastic P-wave; see ``Material.wave_speed``) may
+            cross at most ``wave_cfl * dx`` per substep.
+        max_substeps: the planned substeps per frame are capped here (with a warning).
         auto_dt_halving: on a CFL or NaN failure, double the substeps and rerun (up to
-            ``max_dt_halvings`` times) instead of raising.
+            ``max_dt_halvings`` times) instead of raising. The doubled count is kept for every
+            later rollout of the same simulator (a fit does not retry the coarse step).
         max_dt_halvings: see above.
+        memory_limit: bytes the grid and the rollout's buffers may take; a larger estimate raises
+            :class:`GridTooLargeError` before anything is allocated. ``None`` (default): half the
+            free memory of the CUDA device, or half the available RAM on CPU.
         checkpoint_every: substeps per checkpoint chunk for gradients (state kept at chunk starts,
             the chunk recomputed on the backward pass). Chunks never straddle frames.
         deterministic: Warp's deterministic mode for float atomics on CUDA (reproducible, slower).
@@ -88,8 +109,12 @@ class SimConfig:
     out_of_domain: Literal["grow", "error", "clamp"] = "grow"
     cfl: float = 0.4
     graphs: bool | str = "auto"
+    auto_substeps: bool = True
+    wave_cfl: float = 0.5
+    max_substeps: int = 20000
     auto_dt_halving: bool = False
     max_dt_halvings: int = 3
+    memory_limit: Optional[float] = None
     checkpoint_every: int = 25
     deterministic: bool = False
 
@@ -116,6 +141,11 @@ class SimConfig:
         need(isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1, f"checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")
         need(self.graphs in (True, False, "auto"), f"graphs must be True, False or 'auto', got {self.graphs!r}")
         need(self.max_dt_halvings >= 0, f"max_dt_halvings must be >= 0, got {self.max_dt_halvings!r}")
+        need(0 < self.wave_cfl <= 1.0, f"wave_cfl must be in (0, 1], got {self.wave_cfl!r}")
+        need(isinstance(self.max_substeps, int) and self.max_substeps >= self.substeps,
+             f"max_substeps must be an integer >= substeps ({self.substeps}), got {self.max_substeps!r}")
+        need(self.memory_limit is None or self.memory_limit > 0,
+             f"memory_limit must be a positive number of bytes or None (auto), got {self.memory_limit!r}")
         if self.domain is not None:
             lo, hi = self.domain
             need(len(lo) == 3 and len(hi) == 3, f"domain must be ((x0, y0, z0), (x1, y1, z1)), got {self.domain!r}")

@@ -11,7 +11,13 @@ with quadratic B-spline weights. A particle is inside the domain while
 
 Status flags (``status``, int32[4]): [0] first substep with a particle outside the domain,
 [1] first substep with a CFL violation, [2] first substep with a NaN/inf, [3] unused; each is
-``NO_FLAG`` when clean. They are written with atomics that the adjoint never needs.
+``NO_FLAG`` when clean. They are written with atomics that the adjoint never needs. G2P also
+keeps the largest particle speed of the first CFL-violating substep (``violation_speed``, float[1]),
+so the error reports the real speed rather than that of a later, already broken state.
+
+Ground nodes are the layers ``j <= ground_j``, an integer computed on the host in float64
+(:meth:`GridSpec.ground_layer`): a float32 node position ``origin + j dx`` can round to either
+side of the ground plane depending on where the grid starts.
 """
 
 from __future__ import annotations
@@ -147,19 +153,19 @@ def _then(first: Callable, second: Callable) -> Callable:
 
 
 def make_grid_update_kernel(
-    effects: Callable, ground_height: float | None, boundary: str, domain_walls: bool, deterministic: bool = False
+    effects: Callable, has_ground: bool, boundary: str, domain_walls: bool, deterministic: bool = False
 ) -> "wp.Kernel":
     """Grid update: momentum -> velocity, gravity, effects, ground and domain boundaries.
 
     Args:
         effects: the composed effect function (see :func:`compose_effects`).
-        ground_height: y of the ground plane, or ``None`` for no ground.
-        boundary: ``sticky``, ``slip`` or ``separate`` (ground contact at nodes with y <= ground).
+        has_ground: whether there is a ground plane; its node layers ``j <= ground_j`` (a kernel
+            argument, see :meth:`GridSpec.ground_layer`) get the boundary condition.
+        boundary: ``sticky``, ``slip`` or ``separate`` (ground contact at the ground layers).
         domain_walls: apply separating walls on the outer two node layers (``clamp`` mode).
         deterministic: deterministic atomics (the adjoint reduces into gravity and effect parameters).
     """
-    has_ground = ground_height is not None
-    ground = float(ground_height) if has_ground else 0.0
+    has_ground = bool(has_ground)
     mode = {"sticky": 0, "slip": 1, "separate": 2}[boundary]
 
     @wp.kernel(module="unique", module_options=_options(deterministic))
@@ -172,6 +178,7 @@ def make_grid_update_kernel(
         origin: wp.vec3,
         dx: float,
         dt: float,
+        ground_j: int,
     ):
         i, j, k = wp.tid()
         m = grid_m[i, j, k]
@@ -181,7 +188,7 @@ def make_grid_update_kernel(
             v = grid_mv[i, j, k] / m + dt * gravity[0]
             v = effects(v, xn, dt, effect_params)
             if wp.static(has_ground):
-                if xn[1] <= ground:
+                if j <= ground_j:
                     if wp.static(mode == 0):
                         v = wp.vec3(0.0)
                     elif wp.static(mode == 1):
@@ -232,6 +239,7 @@ def _make_g2p(deterministic: bool):
         cfl_speed: float,
         clamp_particles: int,
         status: wp.array(dtype=wp.int32),
+        violation_speed: wp.array(dtype=float),
         step: int,
     ):
         """Grid-to-particle transfer: velocity, APIC matrix C = 4/dx^2 sum w v (x_i - x_p)^T, x += dt v."""
@@ -260,6 +268,9 @@ def _make_g2p(deterministic: bool):
             # also true for NaN speeds, which the NaN flag below reports separately
             if wp.isfinite(speed2):
                 wp.atomic_min(status, 1, step)
+                if status[1] >= step:
+                    # still the first violating substep: keep its largest speed for the message
+                    wp.atomic_max(violation_speed, 0, wp.sqrt(speed2))
         if not (wp.isfinite(x_new) and wp.isfinite(new_v)):
             wp.atomic_min(status, 2, step)
         if clamp_particles != 0:

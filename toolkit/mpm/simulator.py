@@ -31,6 +31,7 @@ import warp as wp
 
 from materials import Material, get_material
 from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
+from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
 from toolkit.mpm.kernels import (
     NO_FLAG,
@@ -43,7 +44,7 @@ from toolkit.mpm.kernels import (
     store_frame,
 )
 
-__all__ = ["MPMSimulator", "GridSpec", "SimulationResult", "RolloutResult"]
+__all__ = ["MPMSimulator", "GridSpec", "SimulationResult", "RolloutResult", "SubstepPlan"]
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,15 @@ class GridSpec:
         """(N,) bool: whether each point's whole stencil lies inside the grid."""
         X = (np.asarray(points, np.float64) - np.asarray(self.origin)) / self.dx
         return np.all((X >= 0.5) & (X < np.asarray(self.dims) - 1.5), axis=1)
+
+    def ground_layer(self, height: float) -> int:
+        """Index ``j`` of the highest node layer with ``y <= height`` (ground nodes are ``j' <= j``).
+
+        Decided in float64 on the dx lattice (``floor((height - origin_y) / dx + 1e-6)``), never from
+        a float32 node position, so the ground layers do not depend on where the grid starts. May be
+        negative (the ground lies below the grid) or ``>= dims[1]``.
+        """
+        return ground_lattice_index(height, self.dx) - int(round(self.origin[1] / self.dx))
 
     def covers(self, other: "GridSpec") -> bool:
         return all(
@@ -176,12 +186,21 @@ class MPMSimulator:
         self.effects: list[Effect] = [get_effect(e) for e in effects]
         self.device = str(wp.get_device(device))
         self._grid: Optional[GridSpec] = None
+        self._ground_j = -1  # the grid's highest ground layer (GridSpec.ground_layer), set with the grid
         self._buffers: dict = {}
         # captured substep chains; they reference the buffers above, so any reallocation clears them
         self._graphs: dict = {}
         offsets = np.cumsum([0] + [len(e.params) for e in self.effects]).tolist()
         self._effect_offsets = offsets[:-1]
         self.n_effect_params = offsets[-1]
+        #: substeps per frame below which no rollout goes once a dt halving was needed (kept for a fit)
+        self.substeps_floor = 0
+        #: number of dt halvings done so far (each one logged)
+        self.halvings = 0
+        #: the plan of the latest rollout
+        self.last_plan: Optional[SubstepPlan] = None
+        self._differentiable = False
+        self._memory_checked: Optional[tuple] = None  # (grid, differentiable, bytes) last found to fit
         ground = self.config.ground_height
         if ground is not None and any(e.registry_name == "ground_friction" for e in self.effects) and self.config.boundary == "sticky":
             log.warning("ground_friction has no effect with the 'sticky' boundary (infinite friction); use 'slip' or 'separate'")
@@ -243,22 +262,27 @@ class MPMSimulator:
     def _torch_device(self) -> torch.device:
         return torch.device("cpu") if self.device == "cpu" else torch.device(self.device)
 
-    def stable_substeps(self, params: dict[str, float] | torch.Tensor, courant: float = 0.5) -> int:
-        """Substeps per frame that keep an elastic wave within ``courant * dx`` per substep.
+    def stable_substeps(self, params: dict[str, float] | torch.Tensor, courant: float | None = None) -> int:
+        """Substeps per frame that the material alone needs at ``params`` (no rounding, no minimum).
 
-        Uses the P-wave speed ``sqrt((lambda + 2 mu) / rho)`` for materials with E and nu
-        (or ``sqrt((kappa + 4 mu / 3) / rho)`` for fluids). A guide, not a guarantee.
+        The fastest wave (:meth:`Material.wave_speed`: elastic P-wave ``sqrt((lambda + 2 mu) / rho)``,
+        ``sqrt((kappa + 4 mu / 3) / rho)`` for the viscoplastic fluid, ``sqrt(7 kappa / rho)`` for the
+        Newtonian one) crosses at most ``courant * dx`` per substep (default ``SimConfig.wave_cfl``), and
+        the explicit viscous limit (:meth:`Material.viscous_dt`) holds. A guide, not a guarantee.
         """
-        if isinstance(params, torch.Tensor):
-            params = self.material.unpack(params)
-        params = self.material.complete(params)
-        if "E" in params and "nu" in params:
-            E, nu = params["E"], params["nu"]
-            modulus = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
-        else:
-            modulus = params.get("kappa", 0.0) + 4.0 / 3.0 * params.get("mu", 0.0)
-        c = math.sqrt(max(modulus, 0.0) / self.config.density)
-        return max(1, math.ceil(c * self.config.frame_dt / (courant * self.config.dx)))
+        cfg = self.config
+        plan = plan_substeps(self.material, cfg, params, wave_cfl=courant)
+        return max(1, plan.wave, plan.viscous)
+
+    def plan_substeps(self, params: dict[str, float] | torch.Tensor | None = None, v0=None, gravity=None) -> SubstepPlan:
+        """The substeps a rollout with these parameters, initial velocity (m/s) and gravity (m/s^2,
+        default ``config.gravity``) will use.
+
+        See :func:`toolkit.mpm.planning.plan_substeps`; includes the halvings this simulator has kept.
+        """
+        if params is None:
+            params = self.material.defaults()
+        return plan_substeps(self.material, self.config, params, v0, floor=self.substeps_floor, gravity=gravity)
 
     # ------------------------------------------------------------------ grid
     def grid_for(self, x0: np.ndarray, v0: np.ndarray | None = None, n_frames: int = 0, gravity=None) -> GridSpec:
@@ -310,10 +334,18 @@ class MPMSimulator:
         """Fix the grid (e.g. restored from a checkpoint)."""
         if abs(spec.dx - self.config.dx) > 1e-12:
             raise ValueError(f"grid dx {spec.dx} differs from SimConfig.dx {self.config.dx}")
+        off = [o / spec.dx - round(o / spec.dx) for o in spec.origin]
+        if max(abs(o) for o in off) > 1e-4:
+            raise ValueError(
+                f"grid origin {list(spec.origin)} is not on the dx = {spec.dx} lattice (every corner must be a multiple "
+                "of dx, as MPMSimulator.grid_for makes it): the ground layers and the result would depend on it"
+            )
         if spec != self._grid:
             self._grid = spec
             self._buffers = {}
             self._graphs = {}
+            ground = self.config.ground_height
+            self._ground_j = spec.ground_layer(ground) if ground is not None else -1
 
     @property
     def grid(self) -> Optional[GridSpec]:
@@ -326,17 +358,22 @@ class MPMSimulator:
             self.material.cache_key(),
             tuple(e.cache_key() for e in self.effects),
             cfg.ground_height,
+            cfg.dx,
             cfg.boundary,
             cfg.out_of_domain,
             cfg.deterministic,
         )
         if key not in _KERNEL_CACHE:
-            ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx)
+            ground_top = None
+            if cfg.ground_height is not None:
+                # half a cell above the highest ground layer: the same nodes as the kernel's integer test
+                ground_top = (ground_lattice_index(cfg.ground_height, cfg.dx) + 0.5) * cfg.dx
+            ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx, ground_top=ground_top)
             funcs = [e.build(off, ctx) for e, off in zip(self.effects, self._effect_offsets)]
             _KERNEL_CACHE[key] = (
                 make_p2g_kernel(self.material.warp_update(), cfg.deterministic),
-                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height, cfg.boundary, cfg.out_of_domain == "clamp",
-                                        cfg.deterministic),
+                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height is not None, cfg.boundary,
+                                        cfg.out_of_domain == "clamp", cfg.deterministic),
                 make_g2p_kernel(cfg.deterministic),
             )
         return _KERNEL_CACHE[key]
@@ -392,7 +429,12 @@ class MPMSimulator:
     def _status(self):
         status = self._persistent(("status",), lambda: wp.zeros(4, dtype=wp.int32, device=self.device))
         status.fill_(NO_FLAG)
+        self._violation_speed().zero_()
         return status
+
+    def _violation_speed(self):
+        """float[1]: the largest particle speed (m/s) in the first substep that violated the CFL limit."""
+        return self._persistent(("violation_speed",), lambda: wp.zeros(1, dtype=float, device=self.device))
 
     # ------------------------------------------------------------------ substeps
     def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
@@ -414,7 +456,7 @@ class MPMSimulator:
         wp.launch(
             grid_update,
             dim=spec.dims,
-            inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt],
+            inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt, self._ground_j],
             device=self.device,
         )
         if tracers is not None:
@@ -424,7 +466,7 @@ class MPMSimulator:
             g2p,
             dim=n,
             inputs=[s_in.x, grid.v, s_out.x, s_out.v, s_out.C, origin, spec.dx, dt, cfg.cfl * spec.dx / dt,
-                    int(cfg.out_of_domain == "clamp"), status, step],
+                    int(cfg.out_of_domain == "clamp"), status, self._violation_speed(), step],
             device=self.device,
         )
 
@@ -451,23 +493,30 @@ class MPMSimulator:
                 f"at {where}; enlarge SimConfig.domain or SimConfig.margin, or set out_of_domain='clamp'",
                 frame=s // substeps, substep=s, points=x,
             )
+        cfg = self.config
+        plan = self.last_plan
+        wave = f"; the material's wave speed is {plan.wave_speed:.3g} m/s" if plan is not None and plan.wave_speed > 0 else ""
         if int(flags[1]) == first:
-            v = np.linalg.norm(state.v.numpy(), axis=1)
-            vmax = np.nanmax(v) if np.isfinite(v).any() else float("nan")
+            vmax = float(self._violation_speed().numpy()[0])
+            limit = cfg.cfl * cfg.dx * substeps / cfg.frame_dt
+            stable = max(math.ceil(1.25 * vmax * cfg.frame_dt / (cfg.cfl * cfg.dx)), 2 * substeps,
+                         plan.wave if plan is not None else 0)
             raise CFLError(
-                f"CFL violation at {where}: a particle moved more than {self.config.cfl} dx in one substep (max speed "
-                f"at the end of that frame {vmax:.3g} m/s, limit {self.config.cfl * self.config.dx * substeps / self.config.frame_dt:.3g} m/s); "
-                "increase SimConfig.substeps or enable auto_dt_halving",
+                f"CFL violation at {where}: particles moved at up to {vmax:.3g} m/s, more than {cfg.cfl} dx = "
+                f"{cfg.cfl * cfg.dx:.3g} m per substep (limit {limit:.3g} m/s at {substeps} substeps per frame{wave}); "
+                f"about {stable} substeps per frame would be stable: set SimConfig.substeps >= {stable} or enable auto_dt_halving",
                 frame=s // substeps, substep=s,
             )
+        stable = max(2 * substeps, plan.wave if plan is not None else 0)
         raise NaNError(
             f"NaN or inf in particle positions/velocities at {where}; the material may be too stiff for dt = "
-            f"{self.config.frame_dt / substeps:.3g} s: increase SimConfig.substeps or enable auto_dt_halving",
+            f"{cfg.frame_dt / substeps:.3g} s ({substeps} substeps per frame{wave}): try SimConfig.substeps >= {stable} "
+            "or enable auto_dt_halving",
             frame=s // substeps, substep=s,
         )
 
     # ------------------------------------------------------------------ inputs
-    def _prepare(self, x0, v0, params, gravity, effect_params, n_frames):
+    def _prepare(self, x0, v0, params, gravity, effect_params, n_frames, differentiable: bool = False):
         dev = self._torch_device
         if not isinstance(x0, torch.Tensor):
             x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
@@ -508,6 +557,7 @@ class MPMSimulator:
             raise ValueError(f"n_frames must be an integer >= 0, got {n_frames!r}")
         xs = x0.detach().cpu().numpy()
         spec = self.grid_for(xs, v0.detach().mean(0).cpu().numpy(), n_frames, gravity.detach().cpu().numpy())
+        self._check_memory(spec, n, n_frames, differentiable)
         self.set_grid(spec)
         outside = ~spec.contains(xs)
         if outside.any():
@@ -549,7 +599,7 @@ class MPMSimulator:
         """
         from toolkit.mpm.autograd import SimulateFunction
 
-        x0t, v0t, pt, gt, et = self._prepare(x0, v0, params, gravity, effect_params, n_frames)
+        x0t, v0t, pt, gt, et = self._prepare(x0, v0, params, gravity, effect_params, n_frames, differentiable=True)
         holder: dict = {}
         pos, vel = SimulateFunction.apply(self, n_frames, holder, x0t, v0t, pt, gt, et)
         return SimulationResult(pos, vel, holder["substeps"])
@@ -591,9 +641,15 @@ class MPMSimulator:
     # ------------------------------------------------------------------ forward core
     def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints,
                              return_deformation=False, tracers=None):
-        """Forward pass with optional automatic dt halving on CFL/NaN failures and grid growth when a
-        particle leaves an auto-sized grid (``out_of_domain="grow"``)."""
-        substeps = self.config.substeps
+        """Forward pass at the planned substeps (:meth:`plan_substeps`), with optional automatic dt
+        halving on CFL/NaN failures (the doubled count is kept for later rollouts) and grid growth when
+        a particle leaves an auto-sized grid (``out_of_domain="grow"``)."""
+        plan = self.plan_substeps(params, v0, gravity)
+        if plan.capped:
+            log.warning("the material needs %d substeps per frame at these parameters (wave speed %.3g m/s); "
+                        "capped at SimConfig.max_substeps = %d", plan.needed, plan.wave_speed, self.config.max_substeps)
+        self.last_plan = plan
+        substeps = plan.substeps
         halvings = grows = 0
         while True:
             try:
@@ -608,8 +664,25 @@ class MPMSimulator:
                 if not self.config.auto_dt_halving or halvings >= self.config.max_dt_halvings:
                     raise
                 halvings += 1
-                log.warning("%s; halving dt (substeps %d -> %d) and rerunning", type(err).__name__, substeps, 2 * substeps)
+                self.halvings += 1
+                log.warning("%s; halving dt (substeps %d -> %d) and rerunning; later rollouts keep >= %d substeps",
+                            type(err).__name__, substeps, 2 * substeps, 2 * substeps)
                 substeps *= 2
+                self.substeps_floor = max(self.substeps_floor, substeps)
+
+    def _check_memory(self, spec: GridSpec, n: int, n_frames: int, differentiable: bool, growing: bool = False) -> None:
+        """:func:`~toolkit.mpm.planning.check_grid_memory` before ``spec``'s buffers are allocated.
+
+        A grid that already passed (for gradients too, if asked now) is not checked again: its buffers
+        are allocated and no longer show as free memory. The bytes this simulator holds count as free.
+        """
+        done = self._memory_checked
+        self._differentiable = differentiable
+        if done is not None and done[0] == spec and (done[1] or not differentiable):
+            return
+        held = done[2] if done is not None else 0
+        need = check_grid_memory(spec, n, n_frames, self.config, self.device, differentiable, growing=growing, held=held)
+        self._memory_checked = (spec, differentiable, need)
 
     def _can_grow(self, err: OutOfDomainError) -> bool:
         return self.config.out_of_domain == "grow" and self.config.domain is None and err.points is not None
@@ -636,6 +709,7 @@ class MPMSimulator:
         origin = np.floor(lo / dx) * dx
         dims = np.ceil((hi - origin) / dx).astype(int) + 1
         spec = GridSpec(tuple(float(o) for o in origin), tuple(int(d) for d in dims), float(dx))
+        self._check_memory(spec, len(state), 0, self._differentiable, growing=True)
         log.info("particles left the grid; growing it from %s to %s and rerunning", self._grid.dims, spec.dims)
         self.set_grid(spec)
 
@@ -696,6 +770,8 @@ class MPMSimulator:
         n = x0.shape[0]
         dt = self.config.frame_dt / substeps
         dev = self._torch_device
+        ground = self.config.ground_height
+        self._ground_j = self._grid.ground_layer(ground) if ground is not None else -1
         a, b, grid = self._pingpong(n)
         status = self._status()
         per_particle = int(params.shape[0] == n and n > 1)

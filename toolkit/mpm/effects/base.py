@@ -77,6 +77,10 @@ class EffectContext:
     ground_height: Optional[float]
     boundary: str
     dx: float
+    #: y threshold of the ground nodes: half a cell above the highest ground layer of the dx lattice,
+    #: so ``x_node[1] <= ground_top`` picks exactly the simulator's ground layers whatever the float32
+    #: rounding of the node position (``None`` without a ground)
+    ground_top: Optional[float] = None
 
 
 class Effect:

@@ -10,7 +10,7 @@ from toolkit.mpm.effects.base import Effect, EffectContext, EffectError, EffectP
 
 @register_effect("ground_friction")
 class GroundFriction(Effect):
-    """Coulomb friction at grid nodes in contact with the ground (y <= ground height).
+    """Coulomb friction at grid nodes in contact with the ground (the layers with y <= ground height).
 
     For a contact node moving into the ground (normal velocity ``v_n < 0``) the tangential
     velocity ``v_t`` is reduced by ``mu |v_n|``, and stops if it would reverse:
@@ -25,7 +25,8 @@ class GroundFriction(Effect):
     def build(self, offset: int, ctx: EffectContext):
         if ctx.ground_height is None:
             raise EffectError("ground_friction needs a ground plane (SimConfig.ground_height is None)")
-        ground = float(ctx.ground_height)
+        # the simulator's ground layers (robust to float32 node positions), else the plane itself
+        ground = float(ctx.ground_top if ctx.ground_top is not None else ctx.ground_height)
 
         @wp.func
         def apply(v: wp.vec3, x: wp.vec3, dt: float, ep: wp.array(dtype=float)):
