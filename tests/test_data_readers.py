@@ -76,12 +76,15 @@ def frame_rgba() -> np.ndarray:
 
 
 def check_cameras(scene, eyes: list[np.ndarray], fx: float) -> None:
-    """Centres match; TARGET projects to the image centre; a point above it projects up by fx*d/z."""
-    np.testing.assert_allclose(scene.cameras.centers.numpy(), np.stack(eyes), atol=1e-5)
+    """Centres match; TARGET projects to the image centre; a point above it projects up by fx*d/z.
+
+    Compared in the dataset's frame (the reader moved the cameras into the canonical world)."""
+    cameras = scene.to_canonical.inverse().apply_cameras(scene.cameras)
+    np.testing.assert_allclose(cameras.centers.numpy(), np.stack(eyes), atol=1e-5)
     for c, eye in enumerate(eyes):
         _, up, _ = basis(eye)
         pts = torch.tensor(np.stack([TARGET, TARGET + 0.1 * up]))
-        pix, depth = scene.cameras[c].project(pts)
+        pix, depth = cameras[c].project(pts)
         dist = np.linalg.norm(TARGET - eye)
         np.testing.assert_allclose(depth[0].numpy(), [dist, dist], rtol=1e-5)
         np.testing.assert_allclose(pix[0, 0].numpy(), [W / 2, H / 2], atol=1e-4)
@@ -253,7 +256,7 @@ def write_spring_gaus(base: Path, n_cams: int = 3, n_frames: int = 3) -> tuple[P
     cams = [{"camera": f"camera_{c}", "K": K, "c2w": opengl_c2w(eyes[c]).tolist()} for c in range(n_cams)]
     root.mkdir(parents=True)
     (root / "camera.json").write_text(json.dumps(cams[::-1]))  # listed out of order on purpose
-    (root / "frame.json").write_text(json.dumps([{"time": f / 30} for f in range(n_frames)]))
+    (root / "frame.json").write_text(json.dumps([{"time": f * 0.03} for f in range(n_frames)]))
     (root / "physical.json").write_text(json.dumps([{"E": 2e5, "NU": 0.3}, {"INIT_VELOCITY": [0, -1, 0]}]))
     for c, f in product(range(n_cams), range(n_frames)):
         save_png(root / f"camera_{c}" / f"{f:03d}.png", frame_rgba())
@@ -267,7 +270,7 @@ def test_spring_gaus_reader(tmp_path):
     scene = read_spring_gaus(root)
     assert scene.camera_names == ["camera_0", "camera_1", "camera_2"]
     check_cameras(scene, eyes, SG_FX)
-    np.testing.assert_allclose(scene.times, np.arange(3) / 30)
+    np.testing.assert_allclose(scene.times, np.arange(3) * 0.03)
     assert scene.load_mask(1, 2)[SQUARE].all() and scene.load_mask(1, 2).sum() == 9
     assert scene.load_image(1, 2)[0, 0, 0] == pytest.approx(90 / 255)
     gt = scene.ground_truth

@@ -13,10 +13,17 @@ Layout (facts from xuan-li/PAC-NeRF ``train.py::load_data`` and the GIC/ProJo4D 
     <scene>/data/a_{cam}_{frame}.png   optional RGBA with the object alpha (written by GIC's
                                        matting preprocessing, with m_{cam}_{frame}.png on white)
     <scene>/ground_truth.json          this project's synthetic ground truth (optional)
+    <scene>/world.json                 optional world of the scene (gravity, ground plane, fps;
+                                       :func:`toolkit.data.world.load_world`); default below
     <scene>/../<material>.json         public PAC-NeRF ground truth, keyed by scene folder name
                                        ("0", "1", ...); keys E, nu, mu, kappa, ys, eta, fa, v
     <root>/simulation_data/<material>/<scene>/NNN.ply   public ground-truth particles, found by
                                        replacing the path component "pacnerf" by "simulation_data"
+
+World: PAC-NeRF's own, which is the canonical one: gravity (0, -9.8, 0) m/s^2, ground plane
+y = 0 with normal +y, frames 1/24 s apart (xuan-li/PAC-NeRF ``configs/default.py``: ``gravity``,
+``BC = {"ground": [[0, 0, 0], [0, 1, 0]]}``, ``frame_dt = 1/24``). The frame times themselves come
+from ``all_data.json``.
 
 Masks: the ``a_`` files when every frame has one; else the images' alpha channel when the first
 image has a non-constant one; else the difference to the background plate (PAC-NeRF itself
@@ -36,8 +43,9 @@ from toolkit.data.errors import DatasetError, field, load_json, require_file
 from toolkit.data.ground_truth import read_ground_truth
 from toolkit.data.images import alpha_of, image_size, read_raw
 from toolkit.data.scene import GroundTruth, MultiViewScene
+from toolkit.data.world import World, check_frame_rate, into_canonical_world, load_world
 
-__all__ = ["read_pac_nerf"]
+__all__ = ["PAC_NERF_WORLD", "read_pac_nerf"]
 
 _FILE = re.compile(r"^r_(\d+)_(-?\d+)(\.png)?$")
 _MATERIALS = {
@@ -48,6 +56,12 @@ _MATERIALS = {
     "sand": "sand",
 }
 _TIME_TOL = 1e-4  # seconds; frame times of different cameras must agree to this
+
+#: PAC-NeRF's world (xuan-li/PAC-NeRF configs/default.py: gravity, BC "ground", frame_dt = 1/24).
+PAC_NERF_WORLD = World(
+    gravity=(0.0, -9.8, 0.0), ground_point=(0.0, 0.0, 0.0), ground_normal=(0.0, 1.0, 0.0), fps=None,
+    source="PAC-NeRF (xuan-li/PAC-NeRF configs/default.py: gravity [0,-9.8,0], ground [[0,0,0],[0,1,0]])",
+)
 
 
 def read_pac_nerf(root: str | Path, *, verify_sizes: bool = True) -> MultiViewScene:
@@ -148,6 +162,9 @@ def read_pac_nerf(root: str | Path, *, verify_sizes: bool = True) -> MultiViewSc
         camera_names=[names[c] for c in cams],
         mask_source=_mask_source(has_alpha_files, grid[0][0], has_plates),
     )
+    world = load_world(root, PAC_NERF_WORLD)
+    check_frame_rate(frame_times, world, str(index))
+    into_canonical_world(scene, world)
     if verify_sizes:
         scene.verify_image_sizes()
     return scene

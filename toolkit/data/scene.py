@@ -15,6 +15,7 @@ import numpy as np
 from toolkit.cameras import Cameras
 from toolkit.data.errors import DatasetError
 from toolkit.data.images import alpha_of, image_size, mask_of, read_raw, rgb_of, to_unit
+from toolkit.data.world import RigidTransform, World
 
 __all__ = ["GroundTruth", "MultiViewScene", "MaskSource"]
 
@@ -34,6 +35,11 @@ class GroundTruth:
         effects: Effect parameters by effect name, e.g. ``{"ground_friction": {"mu": 0.3}}``.
         point_clouds: Per-frame ground-truth particle clouds (PLY), frame order; may be empty.
         extra: Everything else the source file holds (density, simulation settings, ...).
+        to_canonical: Rigid map from the dataset's frame into the canonical world (set by
+            :func:`~toolkit.data.world.into_canonical_world`); ``v0`` and ``gravity`` are already
+            in the canonical frame, point clouds are mapped when loaded.
+        dataset_frame: ``v0`` and ``gravity`` as the dataset states them (empty when the
+            dataset's frame is the canonical one).
     """
 
     material: str | None = None
@@ -43,6 +49,8 @@ class GroundTruth:
     effects: dict[str, dict] = field(default_factory=dict)
     point_clouds: list[Path] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
+    to_canonical: RigidTransform | None = None
+    dataset_frame: dict = field(default_factory=dict)
 
     def all_params(self) -> dict:
         """``params`` plus ``v0`` (when known): the ground-truth side of ``parameter_errors``."""
@@ -51,15 +59,24 @@ class GroundTruth:
             out["v0"] = list(self.v0)
         return out
 
-    def load_point_cloud(self, frame: int) -> np.ndarray:
-        """Ground-truth particles of ``frame`` as an (N, 3) float64 array."""
+    def load_point_cloud(self, frame: int, canonical: bool = True) -> np.ndarray:
+        """Ground-truth particles of ``frame`` as an (N, 3) float64 array, metres.
+
+        Args:
+            frame: 0-based frame index.
+            canonical: in the canonical world (y up, ground y = 0; the default), or as stored in
+                the dataset's frame.
+        """
         from toolkit.data.ply import read_ply_points
 
         if not 0 <= frame < len(self.point_clouds):
             raise DatasetError(
                 f"ground-truth frame {frame} does not exist: valid 0..{len(self.point_clouds) - 1}"
             )
-        return read_ply_points(self.point_clouds[frame])
+        points = read_ply_points(self.point_clouds[frame])
+        if canonical and self.to_canonical is not None and not self.to_canonical.is_identity:
+            points = self.to_canonical.apply_points(points)
+        return points
 
 
 @dataclass
@@ -86,6 +103,11 @@ class MultiViewScene:
         mask_threshold: Colour difference (max over channels, [0, 1] units) above which a pixel
             counts as object for ``mask_source="background"``.
         metadata: Layout-specific extras (e.g. ``hit_frame``).
+        world: The dataset's world as its conventions state it (gravity, ground plane, nominal
+            fps, source); see :mod:`toolkit.data.world`.
+        to_canonical: Rigid map from the dataset's frame into the canonical world (y up, ground
+            y = 0). Readers apply it on load: ``cameras`` and the ground truth are already in the
+            canonical world; map results back with ``to_canonical.inverse()``.
     """
 
     root: Path
@@ -103,6 +125,8 @@ class MultiViewScene:
     mask_source: MaskSource | None = None
     mask_threshold: float = 0.1
     metadata: dict = field(default_factory=dict)
+    world: World = field(default_factory=World)
+    to_canonical: RigidTransform = field(default_factory=RigidTransform)
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)

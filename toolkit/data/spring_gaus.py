@@ -25,8 +25,28 @@ Real-capture layout (facts from Spring-Gaus ``lib/datasets/real_capture.py``,
                                                  (4752x2672); video K = fx * W / W_s,
                                                  fy * H / H_s, principal point at the image centre
     <real_capture>/dynamic/sync.json            (read by Spring-Gaus, not needed here)
+    <real_capture>/dynamic/sequences/<object>/ground_truth.json   optional, this project's format
+                                                 (scenes written in this layout by the tests)
 
-The cameras are C0733, C0787 and C0801; frames are 120 fps (``FREQ: 120``). ProJo4D passes
+The cameras are C0733, C0787 and C0801; frames are 120 fps (``FREQ: 120``).
+
+Worlds (both readers then move the scene into the canonical world, :mod:`toolkit.data.world`):
+
+* synthetic: gravity (0, -9.8, 0) (``config/mpm_synthetic/default.yaml``: ``G``), ground plane
+  ``y = 0.2`` or ``0.3`` with normal +y depending on the object (``config/mpm_synthetic/<object>.yaml``:
+  ``BC: [[[0, h, 0], [0, 1, 0]]]``), frames 0.03 s apart (``DT: 0.03``; ProJo4D's configs
+  ``config/spring_gaus/mpm_synthetic/*_projo4d.json``: ``fps 33.3333333``). Spring-Gaus itself
+  never reads ``frame.json``; ProJo4D (``readCamerasFromFrameAndCamera``) uses its values as the
+  frame times of the deformation field. The reader takes them as seconds and warns when their
+  step is not 0.03 s.
+* real capture: gravity (0, 0, +9.8) (``config/real_capture/default.yaml``: ``G``), ground plane
+  with normal -z at ``z = -0.01`` (bun, potato) or ``-0.025`` (burger, dog, pig)
+  (``config/real_capture/<object>.yaml``: ``BC``; ProJo4D's ``config/spring_gaus/real_capture/
+  projo4d.json`` uses ``-0.01`` for all, with ``voxel_size 0.01`` and gravity learnt), 120 fps.
+
+Sources: github.com/Colmar-zlicheng/Spring-Gaus (commit c3b44b0) and github.com/daniel03c1/ProJo4D.
+A ``world.json`` in the object's folder (synthetic) or ``dynamic/sequences/<object>/`` (real)
+overrides any field. ProJo4D passes
 ``<real_capture>/<object>`` as the scene path (the folder need not exist); both that and
 ``<real_capture>`` plus ``obj_name`` are accepted.
 """
@@ -52,8 +72,71 @@ from toolkit.data.errors import DatasetError, field, load_json, require_file
 from toolkit.data.ground_truth import read_ground_truth
 from toolkit.data.images import image_size
 from toolkit.data.scene import GroundTruth, MultiViewScene
+from toolkit.data.world import World, check_frame_rate, into_canonical_world, load_world
 
-__all__ = ["read_spring_gaus", "read_spring_gaus_real", "read_colmap_intrinsics"]
+__all__ = [
+    "SPRING_GAUS_FPS",
+    "SPRING_GAUS_GROUND",
+    "SPRING_GAUS_REAL_GROUND",
+    "read_colmap_intrinsics",
+    "read_spring_gaus",
+    "read_spring_gaus_real",
+    "spring_gaus_real_world",
+    "spring_gaus_world",
+]
+
+_SG = "Colmar-zlicheng/Spring-Gaus"
+#: Frame rate of the synthetic set: ``DT: 0.03`` s in every config/mpm_synthetic/<object>.yaml.
+SPRING_GAUS_FPS = 1.0 / 0.03
+#: Ground height y (normal +y) per synthetic object: ``BC`` of config/mpm_synthetic/<object>.yaml.
+SPRING_GAUS_GROUND = {
+    **dict.fromkeys(("C", "E", "V", "rope", "toothpaste"), 0.2),
+    **dict.fromkeys(("apple", "banana", "chess", "cream", "cross", "doraemon", "droplet", "duck",
+                     "torus", "torus_heterogeneous"), 0.3),
+}
+#: Ground z (normal -z) per real-capture object: ``BC`` of config/real_capture/<object>.yaml.
+SPRING_GAUS_REAL_GROUND = {"bun": -0.01, "potato": -0.01, "burger": -0.025, "dog": -0.025, "pig": -0.025}
+
+
+def spring_gaus_world(obj_name: str, ground_height: float | None = None) -> World:
+    """The Spring-Gaus synthetic world of ``obj_name`` (see the module docstring).
+
+    Args:
+        obj_name: object folder name (``torus``, ``rope``, ...).
+        ground_height: y of the ground; default the object's config value, 0.3 (the most common
+            one) with a warning for an object the configs do not list.
+    """
+    source = f"{_SG} config/mpm_synthetic/{obj_name}.yaml (BC, DT) and default.yaml (G)"
+    if ground_height is None:
+        ground_height = SPRING_GAUS_GROUND.get(obj_name)
+        if ground_height is None:
+            import warnings
+
+            ground_height = 0.3
+            source = f"{_SG} config/mpm_synthetic/default.yaml (G); ground y = 0.3 assumed: object {obj_name!r} has no config"
+            warnings.warn(f"Spring-Gaus synthetic object {obj_name!r} is not in the dataset's configs "
+                          f"({sorted(SPRING_GAUS_GROUND)}); assuming the ground at y = 0.3 m. Pass "
+                          "ground_height= or write world.json if it is elsewhere.", stacklevel=3)
+    else:
+        source = f"ground_height={ground_height} given to the reader; {_SG} default.yaml (G)"
+    return World(gravity=(0.0, -9.8, 0.0), ground_point=(0.0, float(ground_height), 0.0),
+                 ground_normal=(0.0, 1.0, 0.0), fps=SPRING_GAUS_FPS, source=source)
+
+
+def spring_gaus_real_world(obj_name: str) -> World:
+    """The Spring-Gaus real-capture world of ``obj_name`` (see the module docstring)."""
+    z = SPRING_GAUS_REAL_GROUND.get(obj_name)
+    source = f"{_SG} config/real_capture/{obj_name}.yaml (BC, FREQ) and default.yaml (G)"
+    if z is None:
+        import warnings
+
+        z = -0.01
+        source = f"{_SG} config/real_capture/default.yaml (G); ground z = -0.01 assumed (ProJo4D's value)"
+        warnings.warn(f"Spring-Gaus real-capture object {obj_name!r} is not in the dataset's configs "
+                      f"({sorted(SPRING_GAUS_REAL_GROUND)}); assuming the ground at z = -0.01 m (normal -z).",
+                      stacklevel=3)
+    return World(gravity=(0.0, 0.0, 9.8), ground_point=(0.0, 0.0, float(z)), ground_normal=(0.0, 0.0, -1.0),
+                 fps=120.0, source=source)
 
 _FRAME = re.compile(r"^(\d+)\.png$")
 _SUFFIX = re.compile(r"_(\d+)$")
@@ -63,7 +146,8 @@ _SUFFIX = re.compile(r"_(\d+)$")
 
 
 def read_spring_gaus(
-    root: str | Path, *, fps: float = 30.0, verify_sizes: bool = True
+    root: str | Path, *, fps: float | None = None, ground_height: float | None = None,
+    verify_sizes: bool = True,
 ) -> MultiViewScene:
     """Read a Spring-Gaus synthetic scene (``render/<object>``, see the module docstring).
 
@@ -72,8 +156,12 @@ def read_spring_gaus(
 
     Args:
         root: The object's folder holding ``camera.json``.
-        fps: Used for the frame times only when ``frame.json`` is absent (times = frame / fps).
+        fps: Frame rate; given, it sets the times (frame / fps) and ``frame.json`` is ignored.
+            Default: the times of ``frame.json``, else frame * 0.03 s (the dataset's ``DT``).
+        ground_height: y of the ground plane (default: the object's Spring-Gaus config).
         verify_sizes: Check every image's size from its header.
+
+    A ``frame.json`` whose step is not 0.03 s gives a warning naming both rates.
     """
     root = Path(root)
     cam_file = root / "camera.json"
@@ -104,7 +192,13 @@ def read_spring_gaus(
     grid = frame_grid(found, names, lambda c, t: root / names[c] / f"{t:03d}.png", root)
     n_frames = len(grid[0])
 
-    times = _synthetic_times(root / "frame.json", n_frames, fps)
+    world = load_world(root, spring_gaus_world(root.resolve().name, ground_height))
+    if fps is not None:
+        times = np.arange(n_frames, dtype=np.float64) / fps
+    else:
+        times = _synthetic_times(root / "frame.json", n_frames, world.fps)
+        if (root / "frame.json").is_file():
+            check_frame_rate(times, world, str(root / "frame.json"))
     width, height = image_size(grid[0][0])
     cameras = Cameras.from_opengl_c2w(
         np.stack([c[2] for c in cams]), K=np.stack([c[1] for c in cams]), width=width, height=height
@@ -116,11 +210,12 @@ def read_spring_gaus(
         times=times,
         image_paths=grid,
         ground_truth=_synthetic_ground_truth(root),
-        fps=fps_from_times(times, fps),
+        fps=fps_from_times(times, world.fps),
         layout="spring_gaus",
         camera_names=[c[0] for c in cams],
         mask_source="alpha",
     )
+    into_canonical_world(scene, world)
     if verify_sizes:
         scene.verify_image_sizes()
     return scene
@@ -305,7 +400,10 @@ def read_spring_gaus_real(
         camera_names=names,
         mask_source="file",
         metadata={"hit_frame": seq_info.get("hit_frame"), "sequence": str(seq), "object": obj_name},
+        ground_truth=read_ground_truth(own_gt) if (own_gt := seq_path.parent / "ground_truth.json").is_file() else None,
     )
+    world = load_world(seq_path.parent, spring_gaus_real_world(obj_name)).with_fps(fps)
+    into_canonical_world(scene, world)
     if verify_sizes:
         scene.verify_image_sizes()
     return scene

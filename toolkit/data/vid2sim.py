@@ -22,6 +22,14 @@ appendix "Experimental Details for the GSO Dataset"). Frames are 0.05 s apart (2
 24 frames, the first 16 for fitting) and start at rest (ProJo4D evaluates the velocity against
 v0 = 0). The ``time`` fields of the JSON are 0 and ignored. Square pixels:
 ``fx = fy = W / (2 tan(camera_angle_x / 2))``.
+
+World: z up, gravity (0, 0, -9.8), floor plane ``z = -0.7`` with normal +z, 20 fps. Vid2Sim's
+simulator (CzzzzH/Vid2Sim ``simulators/lbs_simulator.py``) puts gravity and the floor on one axis
+(``floor_axis``, ``floor_level`` arguments; gravity magnitude 9.8); the values z and -0.7 are
+those of the GSO renders as given in this project's DESIGN (section 8) and issue 14, not found in
+a public config. ProJo4D (``readGSOData``: ``dt=0.05``) gives the frame step. The reader moves the
+scene into the canonical world (:mod:`toolkit.data.world`); a ``world.json`` in the scene folder
+overrides any field.
 """
 
 from __future__ import annotations
@@ -37,8 +45,16 @@ from toolkit.data.errors import DatasetError, field, load_json
 from toolkit.data.ground_truth import read_ground_truth
 from toolkit.data.images import image_size
 from toolkit.data.scene import GroundTruth, MultiViewScene
+from toolkit.data.world import World, into_canonical_world, load_world
 
-__all__ = ["read_vid2sim_gso"]
+__all__ = ["VID2SIM_GSO_WORLD", "read_vid2sim_gso"]
+
+#: Vid2Sim GSO's world (see the module docstring for the sources).
+VID2SIM_GSO_WORLD = World(
+    gravity=(0.0, 0.0, -9.8), ground_point=(0.0, 0.0, -0.7), ground_normal=(0.0, 0.0, 1.0), fps=20.0,
+    source="Vid2Sim GSO (z up, floor z = -0.7: DESIGN section 8 / issue 14; CzzzzH/Vid2Sim "
+           "simulators/lbs_simulator.py floor_axis/floor_level; dt 0.05 s: ProJo4D readGSOData)",
+)
 
 _FRAME = re.compile(r"^a_(\d+)_(\d+)\.png$")
 
@@ -113,6 +129,7 @@ def read_vid2sim_gso(
         camera_names=[str(c) for c in cams],
         mask_source="alpha",
     )
+    into_canonical_world(scene, load_world(root, VID2SIM_GSO_WORLD).with_fps(fps))
     if verify_sizes:
         scene.verify_image_sizes()
     return scene

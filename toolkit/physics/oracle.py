@@ -32,7 +32,8 @@ def voxel_downsample(points: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse", n_train: int | None = None,
-                 particle_spacing: float = 0.01, downscale: int = 1) -> PhysicsInput:
+                 particle_spacing: float = 0.01, downscale: int = 1, dx: float | None = None,
+                 **reader_options) -> PhysicsInput:
     """A :class:`PhysicsInput` whose geometry is the scene's ground truth.
 
     Args:
@@ -41,8 +42,17 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
         n_train: training frames (default: the scene's own split, else 2/3 of the frames).
         particle_spacing: particles are the ground-truth cloud voxel-downsampled to this pitch (m).
         downscale: integer image downscale factor (cameras scaled to match).
+        dx: grid spacing of the fit (m) for the world checks; default ``2 * particle_spacing``.
+        **reader_options: passed to the scene's reader (e.g. ``ground_height`` for Spring-Gaus).
+
+    Everything is in the canonical world (the reader moved the scene there); ``meta["world"]`` says
+    how (:func:`toolkit.physics.world_checks.world_meta`). The world checks run before returning:
+    a body below the ground raises :class:`~toolkit.physics.world_checks.WorldError`.
     """
-    scene = load_scene(scene_root)
+    from toolkit.data.exclusion import exclusion_meta
+    from toolkit.physics.world_checks import check_world, world_meta
+
+    scene = load_scene(scene_root, **reader_options)
     gt = scene.ground_truth
     if gt is None or not gt.point_clouds:
         raise ValueError(f"{scene_root} has no ground-truth point clouds; oracle inputs need a generated scene")
@@ -67,11 +77,14 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
     if n_train is None:
         n_train = int(gt.extra.get("frames", {}).get("n_train_frames") or max(1, 2 * scene.n_frames // 3))
     gt_dict = {"material": gt.material, "params": dict(gt.params), "v0": gt.v0, "gravity": gt.gravity, "effects": gt.effects,
-               "point_clouds": [str(p) for p in gt.point_clouds]}
+               "point_clouds": [str(p) for p in gt.point_clouds], "to_canonical": scene.to_canonical.to_dict()}
+    world = world_meta(scene)
+    check_world(particles, surfaces, scene.times, dx if dx is not None else 2 * particle_spacing, world)
     return PhysicsInput(gaussians=gaussians, particles=torch.from_numpy(particles), particle_volume=particle_volume,
                         surfaces=surfaces, cameras=cams, train_cameras=train, images=images, masks=masks,
                         times=torch.as_tensor(np.asarray(scene.times, dtype=np.float32)), n_train=n_train,
-                        ground_truth=gt_dict, meta={"scene_root": str(scene_root), "source": "oracle"})
+                        ground_truth=gt_dict, meta={"scene_root": str(scene_root), "source": "oracle", "world": world,
+                                                                  **exclusion_meta(scene, downscale)})
 
 
 def _colors_from_images(points: np.ndarray, cameras, images: torch.Tensor, masks: torch.Tensor, train: list[int]) -> torch.Tensor:
