@@ -44,13 +44,17 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
 
 
 def test_run_rejects_bad_settings(scene, tmp_path):
+    """More cases, with exit codes and nothing written, in tests/test_run_safety.py."""
     with pytest.raises(SystemExit, match="unknown field"):
         bad = tmp_path / "bad.yaml"
         bad.write_text("scene: x\nspeed: 3\n")
         main(["run", "--config", str(bad)])
-    with pytest.raises(FileNotFoundError, match="scene folder .* does not exist"):
+    with pytest.raises(SystemExit, match="scene = .*missing.*: this folder does not exist") as exc:
         main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")])
-    with pytest.raises(ValueError, match="geometry must be 'stage0' or 'oracle'"):
-        from toolkit.pipeline import RunSettings, run_pipeline
+    assert exc.value.code == 2
+    from toolkit.pipeline import RunSettings, run_pipeline
+    from toolkit.run_validation import SettingsError
 
+    with pytest.raises(SettingsError, match="geometry = 'lidar': expected 'stage0' or 'oracle'"):
         run_pipeline(RunSettings(scene=str(scene), out=str(tmp_path / "o2"), geometry="lidar"))
+    assert not (tmp_path / "o").exists() and not (tmp_path / "o2").exists()

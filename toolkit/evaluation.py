@@ -16,17 +16,18 @@ Files written to ``out_dir``: ``evaluation.json`` (all numbers, per-frame lists 
 
 from __future__ import annotations
 
-import json
 import math
+import random
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
 
-from toolkit.metrics import chamfer_sequence, emd_sequence, image_metrics, split_mean
+from toolkit.atomic import write_json, write_with
+from toolkit.metrics import CD_MAX_POINTS, EMD_POINTS, chamfer_distance, earth_movers_distance, image_metrics, split_mean
 
-__all__ = ["evaluate_module", "load_ground_truth_clouds"]
+__all__ = ["evaluate_module", "geometry_per_frame", "load_ground_truth_clouds"]
 
 
 def load_ground_truth_clouds(ground_truth: dict | None, n_frames: int) -> Optional[list[np.ndarray]]:
@@ -38,7 +39,13 @@ def load_ground_truth_clouds(ground_truth: dict | None, n_frames: int) -> Option
     paths = ground_truth["point_clouds"][:n_frames]
     if len(paths) < n_frames:
         return None
-    return [read_ply_points(p) for p in paths]
+    clouds = [read_ply_points(p) for p in paths]
+    if ground_truth.get("to_canonical"):  # stored in the dataset's frame; the fit is in the canonical one
+        from toolkit.data.world import RigidTransform
+
+        T = RigidTransform.from_dict(ground_truth["to_canonical"])
+        clouds = clouds if T.is_identity else [T.apply_points(c) for c in clouds]
+    return clouds
 
 
 def _nan_to_none(x):
@@ -52,48 +59,87 @@ def _nan_to_none(x):
 
 
 @torch.no_grad()
-def evaluate_module(module, out_dir: str | Path, render: bool = True) -> dict:
+def geometry_per_frame(positions: Sequence[np.ndarray], clouds: Sequence[np.ndarray],
+                       on_frame: Optional[Callable[[int], None]] = None) -> tuple[list[float], list[float]]:
+    """Chamfer distance (x1e3) and EMD (m) of every frame, exactly as :func:`chamfer_sequence` and
+    :func:`emd_sequence` compute them (one random stream per metric, seeded 0), one frame at a time
+    so ``on_frame(t)`` can report progress after frame ``t``.
+
+    Args:
+        positions: T predicted clouds, each (N, 3) metres.
+        clouds: T ground-truth clouds, each (M_t, 3) metres.
+    """
+    if len(positions) != len(clouds):
+        raise ValueError(f"{len(positions)} predicted frames but {len(clouds)} ground-truth clouds")
+    rng_cd, rng_emd = random.Random(0), random.Random(0)
+    cd, emd = [], []
+    for t, (p, g) in enumerate(zip(positions, clouds)):
+        cd.append(chamfer_distance(p, g, max_points=CD_MAX_POINTS, seed=rng_cd))
+        emd.append(earth_movers_distance(p, g, n_points=EMD_POINTS, seed=rng_emd, fewer="shrink"))
+        if on_frame is not None:
+            on_frame(t)
+    return cd, emd
+
+
+def evaluate_module(module, out_dir: str | Path, render: bool = True, progress: bool = True) -> dict:
     """Predict all frames with ``module`` (a fitted InversePhysicsModule) and compute the metrics.
 
     Args:
         module: the fitted :class:`~toolkit.physics.InversePhysicsModule`.
         out_dir: where ``evaluation.json`` and ``prediction.npz`` go.
         render: also render every camera and compute PSNR/SSIM (skip for speed).
+        progress: show a progress bar over the steps (prediction, CD/EMD per frame, rendering per
+            frame, image metrics) when stdout is a terminal (:func:`toolkit.progress.bars_enabled`).
 
     Returns:
         The evaluation dict (``None`` for metrics that need a ground truth the scene lacks).
     """
+    from toolkit.progress import step_progress
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     inp = module.input
     T, n_train = inp.n_frames, inp.n_train
-    traj = module.predict_trajectory(T)
-    positions = traj["positions"].cpu().numpy()
-    means = traj["means"].cpu().numpy()
-    np.savez_compressed(out_dir / "prediction.npz", positions=positions, means=means, times=inp.times.numpy())
-    result: dict = {"n_frames": T, "n_train": n_train, "estimate": module.estimate(), "errors": module.parameter_errors()}
-
     clouds = load_ground_truth_clouds(inp.ground_truth, T)
-    if clouds is not None:
-        cd, cd_frames = chamfer_sequence(list(positions), clouds)
-        emd, emd_frames = emd_sequence(list(positions), clouds)
-        (cd_tr, cd_fu), (emd_tr, emd_fu) = split_mean(cd_frames, n_train), split_mean(emd_frames, n_train)
-        result["geometry"] = {"cd": cd, "cd_train": cd_tr, "cd_future": cd_fu, "cd_per_frame": cd_frames,
-                              "emd": emd, "emd_train": emd_tr, "emd_future": emd_fu, "emd_per_frame": emd_frames}
-    if render:
-        cams = list(range(len(inp.cameras)))
-        renders = module.render_frames(traj["means"], cams).cpu().numpy()  # (T, C, H, W, 3)
-        preds = np.transpose(renders, (1, 0, 2, 3, 4))
-        gts = inp.images.numpy().astype(np.float32) / 255.0
-        masks = inp.masks.numpy().astype(np.float32) / 255.0
-        result["images"] = {
-            "all_cameras": image_metrics(preds, gts, masks, n_train),
-            "fitted_cameras": image_metrics(preds[inp.train_cameras], gts[inp.train_cameras], masks[inp.train_cameras], n_train),
-        }
-        held = inp.held_out_cameras
-        if held:
-            result["images"]["held_out_cameras"] = image_metrics(preds[held], gts[held], masks[held], n_train)
-        np.savez_compressed(out_dir / "renders.npz", renders=(np.clip(renders, 0, 1) * 255).astype(np.uint8))
+    steps = 1 + (T if clouds is not None else 0) + (T + 1 if render else 0)
+    with step_progress("evaluation", steps, progress) as bar:
+        bar.describe(f"predicting {T} frames")
+        traj = module.predict_trajectory(T)
+        positions = traj["positions"].cpu().numpy()
+        means = traj["means"].cpu().numpy()
+        write_with(out_dir / "prediction.npz", lambda p: np.savez_compressed(p, positions=positions, means=means, times=inp.times.numpy()))
+        result: dict = {"n_frames": T, "n_train": n_train, "estimate": module.estimate(), "errors": module.parameter_errors()}
+        bar.advance("CD and EMD, frame 1" if clouds is not None else ("rendering frame 1" if render else None))
+
+        if clouds is not None:
+            cd_frames, emd_frames = geometry_per_frame(
+                list(positions), clouds, on_frame=lambda t: bar.advance(f"CD and EMD, frame {t + 2}" if t + 1 < T else None))
+            cd, emd = float(np.mean(cd_frames)), float(np.mean(emd_frames))
+            (cd_tr, cd_fu), (emd_tr, emd_fu) = split_mean(cd_frames, n_train), split_mean(emd_frames, n_train)
+            result["geometry"] = {"cd": cd, "cd_train": cd_tr, "cd_future": cd_fu, "cd_per_frame": cd_frames,
+                                  "emd": emd, "emd_train": emd_tr, "emd_future": emd_fu, "emd_per_frame": emd_frames}
+        if render:
+            cams = list(range(len(inp.cameras)))
+            frames = []
+            for t in range(T):
+                bar.describe(f"rendering frame {t + 1}/{T}")
+                frames.append(module.render_frames(traj["means"][t:t + 1], cams).cpu().numpy())
+                bar.advance()
+            renders = np.concatenate(frames)  # (T, C, H, W, 3)
+            bar.describe("PSNR and SSIM")
+            preds = np.transpose(renders, (1, 0, 2, 3, 4))
+            gts = inp.images.numpy().astype(np.float32) / 255.0
+            masks = inp.masks.numpy().astype(np.float32) / 255.0
+            result["images"] = {
+                "all_cameras": image_metrics(preds, gts, masks, n_train),
+                "fitted_cameras": image_metrics(preds[inp.train_cameras], gts[inp.train_cameras], masks[inp.train_cameras], n_train),
+            }
+            held = inp.held_out_cameras
+            if held:
+                result["images"]["held_out_cameras"] = image_metrics(preds[held], gts[held], masks[held], n_train)
+            frames8 = (np.clip(renders, 0, 1) * 255).astype(np.uint8)
+            write_with(out_dir / "renders.npz", lambda p: np.savez_compressed(p, renders=frames8))
+            bar.advance("done")
     result = _nan_to_none(result)
-    (out_dir / "evaluation.json").write_text(json.dumps(result, indent=2))
+    write_json(out_dir / "evaluation.json", result)
     return result

@@ -3,6 +3,7 @@
 Run folder layout (every step resumes or is skipped when its output exists)::
 
     RUN/
+      run.json              the run's identity (scene fingerprint, result-changing settings; toolkit.run_folder)
       settings.json         the resolved settings of this run
       stage0/               4D Gaussians checkpoints (last.ckpt), gaussians.ply (canonical, 3DGS layout)
       continuum/            particles.ply, surface_XXX.ply
@@ -18,11 +19,14 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
 import torch
+
+from toolkit.atomic import CorruptArtifactError, set_aside, write_json
+from toolkit.checkpointing import newest_intact_checkpoint
 
 __all__ = ["RunSettings", "run_pipeline", "load_fitted_module"]
 
@@ -53,12 +57,19 @@ class RunSettings:
         continuum: :class:`toolkit.scene.continuum.ContinuumConfig` fields (default: a lattice at
             ``sim.dx / 2``).
         lambda_geometry: weight of the geometric loss.
+        optimize_gravity: learn gravity too (group S; ProJo4D does for the Spring-Gaus real
+            capture). Gravity starts from the scene's world (canonical frame), or ``sim.gravity``.
         learning_rates: overrides of the physics learning rates.
         renderer: renderer name or ``"auto"``.
         device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
         checkpoint_every: physics iterations between checkpoints.
         report_cameras: cameras shown in the video (default: two fitted and two held-out ones).
         seed: seed of stage 0 and of the batch sampling.
+        threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
+            alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
+            ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA
+            and 1 on a CPU device (see :mod:`toolkit.threads`). Set it (or those variables) when
+            starting several runs on one machine yourself.
     """
 
     scene: str
@@ -77,30 +88,28 @@ class RunSettings:
     sim: dict = field(default_factory=dict)
     continuum: dict = field(default_factory=dict)
     lambda_geometry: float = 1.0
+    optimize_gravity: bool = False
     learning_rates: Optional[dict] = None
     renderer: str = "auto"
     device: str = "auto"
     checkpoint_every: int = 50
     report_cameras: Optional[list[int]] = None
     seed: int = 0
+    threads: Optional[int] = None
 
-    def validate(self) -> None:
-        if not Path(self.scene).is_dir():
-            raise FileNotFoundError(f"scene folder {self.scene} does not exist")
-        if self.geometry not in ("stage0", "oracle"):
-            raise ValueError(f"geometry must be 'stage0' or 'oracle', got {self.geometry!r}")
-        if isinstance(self.stage0, str) and self.stage0 not in ("full", "tiny"):
-            raise ValueError(f"stage0 must be 'full', 'tiny' or a dict of Stage0Schedule fields, got {self.stage0!r}")
-        if not isinstance(self.downscale, int) or self.downscale < 1:
-            raise ValueError(f"downscale must be an integer >= 1, got {self.downscale!r}")
+    def validate(self) -> dict:
+        """Check every setting against the scene before any work (nothing is written).
 
+        Raises:
+            toolkit.run_validation.SettingsError: naming the field, the value and what is valid.
+        """
+        from toolkit.run_validation import validate_run_settings
 
-def _latest_checkpoint(folder: Path) -> Optional[Path]:
-    """``last.ckpt`` if present (a finished run), else the newest ``step_*.ckpt`` (an interrupted one)."""
-    if (folder / "last.ckpt").is_file():
-        return folder / "last.ckpt"
-    steps = sorted(folder.glob("step_*.ckpt"))
-    return steps[-1] if steps else None
+        if self.threads is not None:  # needs no scene: checked first
+            from toolkit.threads import parse_count
+
+            parse_count(self.threads, "RunSettings.threads (--threads)")
+        return validate_run_settings(self)
 
 
 def _device(name: str) -> str:
@@ -133,18 +142,25 @@ def _stage0_module(spec, renderer: str, seed: int):
 def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     """Stage 0 + continuum (or the oracle), written as ``run/physics_input.pt``."""
     from toolkit.physics.inputs import PhysicsInput, load_all_images
+    from toolkit.physics.world_checks import WORLD_META_FILE, check_world, world_meta, write_world_meta
+    from toolkit.data.exclusion import exclusion_meta
 
     path = run / "physics_input.pt"
     if path.is_file():
-        return path
+        try:
+            PhysicsInput.load(path)
+            return path
+        except CorruptArtifactError as err:
+            set_aside(path, str(err))
     device = _device(s.device)
     if s.geometry == "oracle":
         from toolkit.physics.oracle import oracle_input
 
         t = time.perf_counter()
         inp = oracle_input(s.scene, cameras=s.cameras, n_train=s.n_train, particle_spacing=s.sim.get("dx", 0.02) / 2,
-                           downscale=s.downscale)
+                           downscale=s.downscale, dx=float(s.sim.get("dx", 0.02)))
         timings["oracle_s"] = time.perf_counter() - t
+        write_world_meta(run / WORLD_META_FILE, inp.meta["world"])
         inp.save(path)
         return path
 
@@ -160,7 +176,7 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     t = time.perf_counter()
     module = _stage0_module(s.stage0, s.renderer, s.seed)
     every = max(500, module.schedule.iterations // 20)
-    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=_latest_checkpoint(stage0_dir), checkpoint_every=every,
+    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=newest_intact_checkpoint(stage0_dir), checkpoint_every=every,
                         accelerator=_accelerator(device), progress_bar=True)
     for old in stage0_dir.glob("step_*.ckpt"):  # finished: last.ckpt is enough
         old.unlink()
@@ -187,12 +203,15 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     if scene.ground_truth is not None:
         g = scene.ground_truth
         gt = {"material": g.material, "params": dict(g.params), "v0": g.v0, "gravity": g.gravity, "effects": g.effects,
-              "point_clouds": [str(p) for p in g.point_clouds]}
+              "point_clouds": [str(p) for p in g.point_clouds], "to_canonical": scene.to_canonical.to_dict()}
     cams = scene.cameras.scaled(1.0 / s.downscale) if s.downscale > 1 else scene.cameras
     inp = PhysicsInput(gaussians=g0, particles=cont.particles.float(), particle_volume=cont.particle_volume, surfaces=surfaces,
                        cameras=cams, train_cameras=list(views.camera_indices), images=images, masks=masks,
                        times=torch.as_tensor(scene.times, dtype=torch.float32), n_train=len(views.frames), ground_truth=gt,
-                       meta={"scene_root": str(s.scene), "source": "stage0", "continuum": cont.stats})
+                       meta={"scene_root": str(s.scene), "source": "stage0", "continuum": cont.stats,
+                             "world": world_meta(scene), **exclusion_meta(scene, s.downscale)})
+    check_world(inp.particles.numpy(), surfaces, scene.times, dx, inp.meta["world"])  # scene in the wrong world: stop here
+    write_world_meta(run / WORLD_META_FILE, inp.meta["world"])
     inp.save(path)
     return path
 
@@ -251,12 +270,16 @@ def load_fitted_module(run: str | Path, device: str = "cpu"):
     return module.to(device)
 
 
-def _restore_finished_fit(module, physics_dir: Path) -> bool:
-    """Load the last checkpoint into ``module`` if that fit already ran its whole curriculum."""
-    est_path, ckpt_path = physics_dir / "estimate.json", physics_dir / "checkpoints" / "last.ckpt"
-    if not (est_path.is_file() and ckpt_path.is_file()):
+def _restore_finished_fit(module, physics_dir: Path, ckpt_path: Optional[Path]) -> bool:
+    """Load ``ckpt_path`` into ``module`` if that fit already ran its whole curriculum."""
+    est_path = physics_dir / "estimate.json"
+    if ckpt_path is None or not est_path.is_file():
         return False
-    if json.loads(est_path.read_text()).get("iterations") != module.total_iterations:
+    try:
+        finished = json.loads(est_path.read_text()).get("iterations") == module.total_iterations
+    except json.JSONDecodeError:
+        finished = False
+    if not finished:
         return False
     ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)
     if ckpt.get("projo4d", {}).get("curriculum_step") != module.total_iterations:
@@ -267,18 +290,32 @@ def _restore_finished_fit(module, physics_dir: Path) -> bool:
     return True
 
 
-def run_pipeline(settings: RunSettings) -> dict:
-    """Run every step for one scene; returns (and writes) ``summary.json``."""
-    from toolkit.physics.fit import fit_physics
+def run_pipeline(settings: RunSettings, mode: str = "auto") -> dict:
+    """Run every step for one scene; returns (and writes) ``summary.json``.
+
+    Every setting is checked first and the run folder's identity after that (see
+    :mod:`toolkit.run_folder`; ``mode`` is ``"auto"``, ``"resume"`` or ``"overwrite"``), so a mistake
+    costs seconds and writes nothing. The first Ctrl-C or SIGTERM saves a checkpoint at the end of
+    the current iteration and raises :class:`~toolkit.checkpointing.RunInterrupted`; rerunning the
+    same command resumes from it.
+    """
+    from toolkit.checkpointing import graceful_interrupts
+    from toolkit.run_folder import claim_run_folder
 
     s = settings
     s.validate()
-    if _device(s.device) == "cpu":
-        # small CPU problems: torch's thread pool costs more than it gives on a shared machine
-        torch.set_num_threads(1)
+    claim_run_folder(s, mode)
+    with graceful_interrupts():
+        return _run_steps(s)
+
+
+def _run_steps(s: RunSettings) -> dict:
+    from toolkit.physics.fit import fit_physics
+    from toolkit.threads import configure_threads
+
+    # several runs on one machine must not each take every core (issue #25), on CPU and CUDA alike
+    threads = configure_threads(s.threads, device=_device(s.device), name="RunSettings.threads (--threads)")
     run = Path(s.out)
-    run.mkdir(parents=True, exist_ok=True)
-    (run / "settings.json").write_text(json.dumps(asdict(s), indent=2))
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
     device = _device(s.device)
@@ -286,11 +323,15 @@ def run_pipeline(settings: RunSettings) -> dict:
     input_path = build_physics_input(s, run, timings)
     module = make_physics_module(s, input_path)
     t = time.perf_counter()
-    if not _restore_finished_fit(module, run / "physics"):
-        fit_physics(module, run / "physics", resume="last", checkpoint_every=s.checkpoint_every, accelerator=_accelerator(device))
+    ckpt = newest_intact_checkpoint(run / "physics" / "checkpoints")
+    if not _restore_finished_fit(module, run / "physics", ckpt):
+        fit_physics(module, run / "physics", resume=ckpt, checkpoint_every=s.checkpoint_every, accelerator=_accelerator(device))
     timings["physics_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t_all
-    return evaluate_and_report(module, run, s, timings)
+    summary = evaluate_and_report(module, run, s, timings)
+    summary["threads"] = threads.to_dict()
+    write_json(run / "summary.json", summary)
+    return summary
 
 
 def make_physics_module(s: RunSettings, input_path: str | Path):
@@ -298,11 +339,16 @@ def make_physics_module(s: RunSettings, input_path: str | Path):
     from toolkit.mpm import SimConfig
     from toolkit.physics import InversePhysicsModule
 
-    sim = SimConfig(**{"auto_dt_halving": True, **s.sim})
+    from toolkit.physics.world_checks import WORLD_META_FILE, read_world_meta
+
+    world = read_world_meta(Path(input_path).parent / WORLD_META_FILE) or {}
+    defaults = {"auto_dt_halving": True, **({"gravity": world["gravity"]} if world.get("gravity") else {})}
+    sim = SimConfig(**{**defaults, **s.sim})  # sim.gravity (canonical frame) overrides the scene's world
     return InversePhysicsModule(str(input_path), material=s.material, material_options=s.material_options,
                                 initial_params=s.initial_params, optimize_params=s.optimize_params,
                                 curriculum=resolve_curriculum(s.curriculum, s.curriculum_options), renderer=s.renderer,
-                                sim=sim, lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed)
+                                sim=sim, lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed,
+                                optimize_gravity=s.optimize_gravity)
 
 
 def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dict:
@@ -324,7 +370,7 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams)
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"]
     summary = _summary(module, evaluation, timings, files)
-    (run / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json(run / "summary.json", summary)
     return summary
 
 
@@ -339,7 +385,12 @@ def _summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> 
         rows.append({"parameter": f"v0_{c}", "estimate": est["v0"][i], "truth": None if gt.get("v0") is None else gt["v0"][i]})
     geo = evaluation.get("geometry") or {}
     img = (evaluation.get("images") or {}).get("all_cameras") or {}
+    from toolkit.physics.world_checks import to_dataset_frame
+
+    world = module.input.meta.get("world")
     return {
+        "world": world,
+        "dataset_frame": to_dataset_frame(est, world),  # v0 and gravity in the dataset's own axes
         "material": est["material"],
         "curriculum": module.curriculum.schedule_string(module.material.registry_name or None),
         "parameters": rows,

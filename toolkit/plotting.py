@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from toolkit.atomic import write_with
+
 __all__ = ["pyplot", "save_figure"]
 
 
@@ -22,6 +24,6 @@ def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    write_with(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
     pyplot().close(fig)
     return path

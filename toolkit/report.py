@@ -19,6 +19,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from toolkit.atomic import write_with
 from toolkit.plotting import pyplot, save_figure
 
 __all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report", "plot_evaluation_trajectories",
@@ -137,15 +138,16 @@ def comparison_video(gt: np.ndarray, pred: np.ndarray, n_train: int, path: str |
     path = Path(path)
     written = []
     try:
-        iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", macro_block_size=1)
+        write_with(path, lambda p: iio.imwrite(p, np.stack(frames), fps=fps, codec="libx264", macro_block_size=1))
         written.append(path)
     except Exception:  # no ffmpeg available: a GIF instead
         gif = path.with_suffix(".gif")
-        iio.imwrite(gif, np.stack(frames), duration=1000 / fps, loop=0)
+        write_with(gif, lambda p: iio.imwrite(p, np.stack(frames), duration=1000 / fps, loop=0))
         written.append(gif)
     future = frames[n_train:] or frames[-1:]
     strip = path.with_name(path.stem + "_future.png")
-    iio.imwrite(strip, np.concatenate(future, axis=1) if len(future) < 5 else np.concatenate(future[:: max(1, len(future) // 4)], axis=1))
+    strip_image = np.concatenate(future if len(future) < 5 else future[:: max(1, len(future) // 4)], axis=1)
+    write_with(strip, lambda p: iio.imwrite(p, strip_image))
     written.append(strip)
     return written
 

@@ -145,6 +145,8 @@ def execute_job(job: dict) -> dict:
     _STOP.clear()
     t0 = time.perf_counter()
     status, result, error = "done", {}, None
+    from toolkit.checkpointing import RunInterrupted  # a fit stopped by SIGTERM after saving its checkpoint
+
     with _redirect_output(job.get("extra", {}).get("log")):
         try:
             _check_stop()
@@ -152,7 +154,7 @@ def execute_job(job: dict) -> dict:
             if runner is None:
                 raise ValueError(f"unknown job kind {job['kind']!r}")
             result = runner(job) or {}
-        except (JobInterrupted, KeyboardInterrupt, SystemExit) as exc:  # SIGTERMException is a SystemExit
+        except (JobInterrupted, RunInterrupted, KeyboardInterrupt, SystemExit) as exc:  # SIGTERMException: a SystemExit
             status, error = "interrupted", f"{type(exc).__name__}: {exc}"
             print(f"job {job['id']} interrupted: {error}", flush=True)
         except Exception as exc:  # noqa: BLE001 - a failed job is recorded, the benchmark goes on
@@ -209,7 +211,7 @@ def _prepare(job: dict) -> dict:
     s.validate()
     run = Path(s.out)
     run.mkdir(parents=True, exist_ok=True)
-    _set_threads(s.device)
+    threads = _set_threads(s)
     (run / "settings.json").write_text(json.dumps(job["settings"], indent=2))
     path = run / "physics_input.pt"
     if path.is_file() and not _loadable(path):
@@ -226,17 +228,17 @@ def _prepare(job: dict) -> dict:
     d = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
     return {"n_particles": int(d["particles"].shape[0]), "n_gaussians": int(d["gaussians"]["means"].shape[0]),
             "n_frames": int(d["images"].shape[1]), "n_train": int(d["n_train"]), "train_cameras": list(d["train_cameras"]),
-            "timings_s": {k: round(v, 1) for k, v in timings.items()}}
+            "timings_s": {k: round(v, 1) for k, v in timings.items()}, "threads": threads}
 
 
-def _set_threads(device: str) -> None:
-    import torch
+def _set_threads(s) -> dict:
+    """Size this worker's CPU thread pools: the job's ``threads`` setting, else ``PROJO4D_THREADS``
+    (the executor sets it to the affinity-mask cores divided among the jobs running side by side),
+    else :func:`toolkit.threads.resolve_threads`'s default. Returns the choice as a dict."""
+    from toolkit.pipeline import _device
+    from toolkit.threads import configure_threads
 
-    n = int(os.environ.get("PROJO4D_WORKER_THREADS", "0") or 0)
-    if n > 0:
-        torch.set_num_threads(n)
-    elif device == "cpu" or (device == "auto" and not torch.cuda.is_available()):
-        torch.set_num_threads(1)
+    return configure_threads(s.threads, device=_device(s.device), name=f"threads of job settings ({s.out})").to_dict()
 
 
 # ------------------------------------------------------------------------------------ fit
@@ -269,7 +271,7 @@ def _fit(job: dict) -> dict:
     run = Path(s.out)
     run.mkdir(parents=True, exist_ok=True)
     device = _device(s.device)
-    _set_threads(device)
+    threads = _set_threads(s)
     (run / "settings.json").write_text(json.dumps(job["settings"], indent=2))
     src = Path(extra["physics_input"])
     if not src.is_file():
@@ -281,7 +283,8 @@ def _fit(job: dict) -> dict:
     module = make_physics_module(s, run / "physics_input.pt")
     physics_dir = run / "physics"
     t = time.perf_counter()
-    if not _restore_finished_fit(module, physics_dir):
+    last = physics_dir / "checkpoints" / "last.ckpt"
+    if not _restore_finished_fit(module, physics_dir, last if last.is_file() else None):
         _drop_broken_checkpoints(physics_dir / "checkpoints")
         every = int(extra.get("checkpoint_every") or s.checkpoint_every)
         from materials import MaterialError
@@ -327,6 +330,7 @@ def _fit(job: dict) -> dict:
                             "train_cameras": list(inp.train_cameras), "optimized": list(module.optimized_material),
                             "iterations": module.total_iterations, "n_particles": int(module.particles0.shape[0]),
                             "diverged": diverged}
+    summary["threads"] = threads
     (run / "summary.json").write_text(json.dumps(summary, indent=2))  # with the benchmark fields
     for old in (physics_dir / "checkpoints").glob("step_*.ckpt"):  # finished: last.ckpt and the stage ends are enough
         old.unlink()
@@ -337,4 +341,4 @@ def _fit(job: dict) -> dict:
     return {"cd": fut.get("cd"), "emd": fut.get("emd"), "psnr": fut.get("psnr"), "ssim": fut.get("ssim"),
             "errors": {k.split("/", 1)[-1]: v for k, v in (summary.get("errors") or {}).items() if isinstance(v, (int, float))},
             "curriculum": summary["curriculum"], "timings_s": {k: round(v, 1) for k, v in timings.items()},
-            "diverged": diverged}
+            "diverged": diverged, "threads": threads}

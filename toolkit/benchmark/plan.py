@@ -517,7 +517,7 @@ def plan_benchmark(spec: BenchmarkSpec, out: str | Path) -> list[Job]:
                                 "checkpoint_every": spec.checkpoint_every}
                 fit_id = f"fit:{scene.name}:cams{count}:{strat.label}"
                 fp_settings = {k: v for k, v in fit_settings.items() if k not in ("out", "device", "checkpoint_every",
-                                                                                   "report_cameras")}
+                                                                                   "report_cameras", "threads")}
                 fp_settings["scene"] = scene.name
                 jobs.append(Job(id=fit_id, kind="fit", folder=str(run_dir), scene=scene.name, material=scene.material,
                                 cameras=count, strategy=strat.label, depends=[prep_id], settings=fit_settings,

@@ -13,6 +13,12 @@ scene. Nothing is data-parallel: no gradient is ever averaged across scenes.
   system). It has not been tested on a multi-machine cluster here.
 * :class:`InlineExecutor`: one job at a time in this process (debugging, tutorials).
 
+Each job's CPU thread pools are sized for its share of the machine (issue #25): the local
+executor gives every job process ``PROJO4D_THREADS`` (the affinity-mask cores divided by the jobs
+running at once, at most 8, 1 for CPU workers, or ``threads``), ``OMP_NUM_THREADS`` & co. and
+``PROJO4D_CONCURRENT_RUNS`` from its start; a Ray task gets its CPUs as its thread count. The job
+applies it with :func:`toolkit.threads.configure_threads` (a ``threads`` setting of the job wins).
+
 The scheduler (:func:`run_jobs`) starts a job once the jobs it depends on are done (stage 0
 before the fits that share it), ``generate`` before ``prepare`` before ``fit``. With a time limit
 it sends the running jobs SIGTERM ``grace`` seconds before the limit (each saves its state and
@@ -53,12 +59,17 @@ def _resolve(fn: str) -> Callable[[dict], dict]:
 
 
 # ------------------------------------------------------------------------------------ executors
-def _init_worker(threads: Optional[int]) -> None:
-    """Worker start: thread count and signal handling (each worker runs one job, then exits)."""
+def _init_worker(threads: Optional[int], concurrent: Optional[int] = None) -> None:
+    """Worker start: thread count and signal handling (each worker runs one job, then exits).
+
+    ``threads`` goes to ``PROJO4D_THREADS``, ``OMP_NUM_THREADS`` & co. (:func:`toolkit.threads.child_env`),
+    which the job applies with :func:`toolkit.threads.configure_threads`; ``concurrent`` (the
+    jobs sharing this machine) to ``PROJO4D_CONCURRENT_RUNS``.
+    """
     if threads:
-        os.environ["PROJO4D_WORKER_THREADS"] = str(threads)
-        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ[var] = str(threads)
+        from toolkit.threads import child_env
+
+        os.environ.update(child_env(threads, concurrent))
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops the workers
     from toolkit.benchmark.jobs import install_stop_handler
 
@@ -88,11 +99,12 @@ class _SpawnableMain:
         return False
 
 
-def _job_process(conn, fn: str, job: dict, gpu: Optional[str], threads: Optional[int]) -> None:
+def _job_process(conn, fn: str, job: dict, gpu: Optional[str], threads: Optional[int],
+                 concurrent: Optional[int] = None) -> None:
     """Body of one job's process: set the GPU before anything starts CUDA, run, send the result."""
     if gpu is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu)
-    _init_worker(threads)
+    _init_worker(threads, concurrent)
     try:
         result = _resolve(fn)(job)
     except BaseException as exc:  # noqa: BLE001 - an error outside the job's own error handling
@@ -131,7 +143,10 @@ class LocalExecutor:
             "1", "1"]`` for two jobs on each of two GPUs; ``None`` for CPU workers. Each job
             goes to the GPU running the fewest jobs when it starts (ties: the first listed), so
             four stage-0 jobs on four GPUs get one GPU each.
-        threads: torch threads per worker.
+        threads: CPU threads per job (torch, OpenMP, BLAS; ``PROJO4D_THREADS`` in the job's
+            process); ``None``: this process's affinity-mask cores divided by ``workers``, at
+            least 1 (:func:`toolkit.threads.per_job_threads`) and at most the default cap of a
+            GPU or CPU run (:func:`toolkit.threads.default_cap`: 8, or 1 for CPU workers).
         fn: ``"module:function"`` run on each job dict (default :data:`JOB_FUNCTION`).
     """
 
@@ -148,15 +163,23 @@ class LocalExecutor:
         self._load = {g: 0 for g in self._gpus}
         self._running: dict = {}  # handle -> (process, GPU or None)
         self.capacity = workers
+        if threads is None:
+            from toolkit.threads import default_cap, per_job_threads
+
+            threads = min(per_job_threads(workers), default_cap("cuda" if gpus else "cpu"))
         self._threads = threads
         self._fn = fn
 
     def submit(self, job: dict) -> cf.Future:
         gpu = min(self._gpus, key=lambda g: self._load[g]) if self._gpus else None
         receive, send = self._ctx.Pipe(duplex=False)
-        process = self._ctx.Process(target=_job_process, args=(send, self._fn, job, gpu, self._threads),
+        process = self._ctx.Process(target=_job_process, args=(send, self._fn, job, gpu, self._threads, self.capacity),
                                     name=f"projo4d-job-{job['id']}")
-        with _SpawnableMain():
+        from toolkit.threads import child_environment
+
+        # the variables are in the child's environment from its first instruction (libraries that
+        # read them when they load, e.g. OpenBLAS, see them too)
+        with _SpawnableMain(), child_environment(self._threads, self.capacity):
             process.start()
         send.close()  # the child holds the sending end: a dead child reads as end-of-file
         handle: cf.Future = cf.Future()
@@ -242,9 +265,19 @@ class InlineExecutor:
         pass
 
 
-def _ray_call(fn: str, job: dict) -> dict:
+def _ray_call(fn: str, job: dict, threads: Optional[int] = None, concurrent: Optional[int] = None) -> dict:
+    """Body of one Ray task: ``threads`` CPU threads (the task's CPUs), then the job.
+
+    ``concurrent`` (``PROJO4D_CONCURRENT_RUNS``): the tasks sharing this node; ``None``: this
+    node's cores divided by ``threads`` (Ray packs tasks by their CPUs).
+    """
     from toolkit.benchmark.jobs import install_stop_handler
 
+    if threads:
+        from toolkit.threads import apply_threads, available_cores, child_env
+
+        os.environ.update(child_env(threads, concurrent or max(1, available_cores() // threads)))
+        apply_threads(threads)
     install_stop_handler()
     return _resolve(fn)(job)
 
@@ -255,15 +288,18 @@ class RayExecutor:
     Args:
         address: Ray cluster address (``"auto"`` for a running cluster; ``None`` starts a local one).
         gpus_per_job: GPUs per task; ``None``: ``1 / jobs_per_gpu`` when the cluster has GPUs, else 0.
-        cpus_per_job: CPUs per task.
+        cpus_per_job: CPUs per task, which is also the task's thread count (``PROJO4D_THREADS``);
+            ``None``: with GPUs, the cluster's CPUs divided among the tasks its GPUs hold at once
+            (on a cluster of equal machines: each machine's cores divided among its tasks),
+            without GPUs 1.
         fn: ``"module:function"`` run on each job dict.
         jobs_per_gpu: tasks sharing one GPU (when ``gpus_per_job`` is ``None``).
     """
 
     name = "ray"
 
-    def __init__(self, address: Optional[str] = None, gpus_per_job: Optional[float] = None, cpus_per_job: float = 1.0,
-                 fn: str = JOB_FUNCTION, jobs_per_gpu: int = 1):
+    def __init__(self, address: Optional[str] = None, gpus_per_job: Optional[float] = None,
+                 cpus_per_job: Optional[float] = None, fn: str = JOB_FUNCTION, jobs_per_gpu: int = 1):
         try:
             import ray
         except ImportError:
@@ -278,12 +314,16 @@ class RayExecutor:
             gpus_per_job = (1.0 / max(1, jobs_per_gpu)) if gpus else 0.0
         if gpus_per_job > 0 and not gpus:
             raise RuntimeError("the Ray cluster has no GPUs; use gpus_per_job=0 (or --device cpu)")
-        self.capacity = max(1, int(gpus / gpus_per_job) if gpus_per_job else int(float(res.get("CPU", 1)) / cpus_per_job))
+        cpus = float(res.get("CPU", 1))
+        if cpus_per_job is None:
+            cpus_per_job = float(max(1, int(cpus // max(1, int(gpus / gpus_per_job))))) if gpus_per_job else 1.0
+        self.capacity = max(1, int(gpus / gpus_per_job) if gpus_per_job else int(cpus / cpus_per_job))
+        self.threads = max(1, int(cpus_per_job))
         self._fn = fn
         self._remote = ray.remote(num_gpus=gpus_per_job, num_cpus=cpus_per_job, max_retries=0)(_ray_call)
 
     def submit(self, job: dict):
-        return self._remote.remote(self._fn, job)
+        return self._remote.remote(self._fn, job, self.threads)
 
     def wait(self, handles: Sequence, timeout: Optional[float]) -> list:
         ready, _ = self._ray.wait(list(handles), num_returns=1, timeout=timeout)
@@ -325,19 +365,23 @@ def make_executor(kind: str = "local", workers: Optional[int] = None, gpus: Opti
                   fn: str = JOB_FUNCTION, use_gpus: bool = True):
     """An executor: ``local`` (GPUs when given, else ``workers`` CPU processes), ``ray`` (the
     cluster's GPUs unless ``use_gpus`` is false) or ``inline``."""
+    if threads is not None:
+        from toolkit.threads import parse_count
+
+        threads = parse_count(threads, "threads per benchmark job (--threads)")
     if kind == "inline":
         return InlineExecutor(fn)
     if kind == "ray":
-        return RayExecutor(ray_address, gpus_per_job=None if use_gpus else 0.0, cpus_per_job=float(threads or 1), fn=fn,
-                           jobs_per_gpu=jobs_per_gpu)
+        return RayExecutor(ray_address, gpus_per_job=None if use_gpus else 0.0,
+                           cpus_per_job=float(threads) if threads else None, fn=fn, jobs_per_gpu=jobs_per_gpu)
     if kind != "local":
         raise ValueError(f"executor must be 'local', 'ray' or 'inline', got {kind!r}")
     if gpus:
         n = workers or len(gpus) * jobs_per_gpu
         slots = [g for g in gpus for _ in range(jobs_per_gpu)]
-        return LocalExecutor(n, slots, threads or max(1, (os.cpu_count() or 1) // n), fn)
+        return LocalExecutor(n, slots, threads, fn)  # threads None: affinity-mask cores / n
     n = workers or 1
-    return LocalExecutor(n, None, threads or max(1, (os.cpu_count() or 1) // n), fn)
+    return LocalExecutor(n, None, threads, fn)
 
 
 # ------------------------------------------------------------------------------------ scheduling
@@ -586,7 +630,8 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         workers: worker processes (default: one per GPU x ``jobs_per_gpu``; 1 on a CPU).
         gpus: GPU ids to use (default: every visible GPU unless the settings say ``device: cpu``).
         jobs_per_gpu: workers sharing one GPU.
-        threads: torch threads per worker.
+        threads: CPU threads per job (default: this process's affinity-mask cores divided by the
+            jobs running at once; with Ray, the cluster's CPUs divided among its tasks).
         ray_address: Ray cluster address (``executor="ray"``).
         time_limit: seconds from now by which this call returns (jobs get SIGTERM ``grace`` seconds
             before); a rerun continues.

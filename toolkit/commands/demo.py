@@ -13,8 +13,9 @@ settings as a config file).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from toolkit.atomic import write_json
 
 __all__ = ["configure", "run", "run_demo", "DEMO_SCENE", "DEMO_RUN"]
 
@@ -61,5 +62,5 @@ def run_demo(out: Path, device: str = "auto", curriculum: str | None = None) -> 
     if curriculum:
         settings["curriculum"] = curriculum
     summary = run_pipeline(RunSettings(**settings))
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json(out / "summary.json", summary)
     return summary

@@ -5,7 +5,7 @@ Examples::
     projo4d fit --config configs/synthetic_elastic.yaml
     projo4d fit --config configs/synthetic_elastic.yaml --model.curriculum sequential --trainer.default_root_dir runs/seq
     projo4d fit --model.input_path RUN/physics_input.pt --model.material plasticine --model.curriculum "XAS:100@3,XASM:300"
-    projo4d fit --config RUN/physics/logs/config.yaml --ckpt_path RUN/physics/checkpoints/last.ckpt   # resume
+    projo4d fit --config RUN/logs/version_0/config.yaml --ckpt_path RUN/checkpoints/last.ckpt   # resume
 
 The model is :class:`toolkit.physics.InversePhysicsModule`; its ``curriculum`` takes a strategy
 name, a schedule string or ``class_path``/``init_args`` of any :class:`strategies.Strategy`
@@ -58,11 +58,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if isinstance(cb, ProgressBar):
                     cbs[i] = curriculum_progress_bar()
 
-    PhysicsCLI(
-        InversePhysicsModule,
-        trainer_defaults={**TRAINER_DEFAULTS, "callbacks": default_callbacks(progress=False), "default_root_dir": "runs/fit"},
-        save_config_kwargs={"overwrite": True},
-        args=argv,
-        auto_configure_optimizers=False,
-    )
+    from toolkit.checkpointing import graceful_interrupts
+
+    with graceful_interrupts():  # Ctrl-C / SIGTERM: save last.ckpt at the end of the iteration, then stop
+        PhysicsCLI(
+            InversePhysicsModule,
+            trainer_defaults={**TRAINER_DEFAULTS, "callbacks": default_callbacks(progress=False), "default_root_dir": "runs/fit"},
+            save_config_kwargs={"overwrite": True},
+            parser_kwargs={"exit_on_error": False},  # a mistake is one line from toolkit.cli's error boundary
+            args=argv,
+            auto_configure_optimizers=False,
+        )
     return 0

@@ -14,6 +14,7 @@ import argparse
 from pathlib import Path
 
 from toolkit.commands.arguments import json_arg
+from toolkit.run_validation import SettingsError
 
 __all__ = ["configure", "run"]
 
@@ -26,6 +27,15 @@ def _key_value(text: str) -> tuple[str, float]:
         return k.strip(), float(v)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{k}: {v!r} is not a number") from None
+
+
+def _threads_arg(text: str) -> int:
+    from toolkit.threads import ThreadSettingError, parse_count
+
+    try:
+        return parse_count(text, "--threads")
+    except ThreadSettingError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -45,11 +55,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\'')
     parser.add_argument("--device", help="auto, cpu or cuda")
     parser.add_argument("--seed", type=int)
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out with the settings it recorded (flags given must agree)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the run in --out instead of resuming it")
+    parser.add_argument("--threads", type=_threads_arg,
+                        help="CPU threads of this run (torch, OpenMP, BLAS), on CPU and CUDA alike (default: "
+                             "$PROJO4D_THREADS, else the cores of this process's affinity mask divided by "
+                             "$PROJO4D_CONCURRENT_RUNS, at most 8 on CUDA and 1 on CPU). Starting N runs on one machine yourself: "
+                             "give --threads CORES/N or export PROJO4D_CONCURRENT_RUNS=N")
 
 
 #: model-section keys (InversePhysicsModule arguments) that RunSettings carries
 _MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_params", "curriculum", "sim", "lambda_geometry",
-               "learning_rates", "renderer", "seed")
+               "learning_rates", "renderer", "seed", "optimize_gravity")
 
 
 def settings_from_sections(cfg: dict, path) -> dict:
@@ -94,23 +112,59 @@ def settings_from_args(args: argparse.Namespace):
         "scene": args.scene, "out": args.out, "material": args.material, "material_options": args.material_options,
         "curriculum": args.curriculum, "curriculum_options": args.curriculum_options, "n_train": args.n_train,
         "downscale": args.downscale, "geometry": args.geometry, "sim": args.sim, "device": args.device, "seed": args.seed,
+        "threads": args.threads,
     }
     if args.cameras:
-        over["cameras"] = args.cameras if args.cameras in ("sparse", "all") else [int(c) for c in args.cameras.split(",")]
+        over["cameras"] = _cameras_arg(args.cameras)
     if args.stage0:
-        over["stage0"] = args.stage0 if args.stage0 in ("full", "tiny") else json_arg(args.stage0)
+        over["stage0"] = _stage0_arg(args.stage0)
     if args.param:
         over["initial_params"] = {**(base.get("initial_params") or {}), **dict(args.param)}
+    if getattr(args, "resume", False):
+        base = {**_recorded(args.out), **base}
     merged = {**base, **{k: v for k, v in over.items() if v is not None}}
     if not merged.get("scene"):
-        raise SystemExit("projo4d run: give a scene folder (argument or 'scene:' in --config)")
+        raise SettingsError("scene", None, "give a scene folder (argument, 'scene:' in --config, or --resume --out RUN)")
     merged.setdefault("out", str(Path("runs") / Path(merged["scene"]).name))
     return RunSettings(**merged)
+
+
+def _cameras_arg(text: str):
+    if text in ("sparse", "all"):
+        return text
+    try:
+        return [int(c) for c in text.split(",")]
+    except ValueError:
+        raise SettingsError("cameras", text, "expected 'sparse', 'all' or comma-separated 0-based indices") from None
+
+
+def _stage0_arg(text: str):
+    if not text.lstrip().startswith("{"):
+        return text  # a preset name; validation lists the valid ones
+    try:
+        return json_arg(text)
+    except argparse.ArgumentTypeError as err:
+        raise SettingsError("stage0", text, str(err)) from None
+
+
+def _recorded(out) -> dict:
+    """The settings a run folder recorded (for --resume)."""
+    from toolkit.run_folder import recorded_settings
+
+    if not out:
+        raise SettingsError("out", out, "--resume needs the run folder: --resume --out RUN")
+    recorded = recorded_settings(out)
+    if recorded is None:
+        raise SettingsError("out", out, "there is no run to resume in this folder (no readable settings.json)")
+    return recorded
 
 
 def run(args: argparse.Namespace) -> int:
     from toolkit.pipeline import format_summary, run_pipeline
 
-    summary = run_pipeline(settings_from_args(args))
+    if args.resume and args.overwrite:
+        raise SettingsError("--resume/--overwrite", True, "give one of them, not both")
+    mode = "resume" if args.resume else "overwrite" if args.overwrite else "auto"
+    summary = run_pipeline(settings_from_args(args), mode=mode)
     print(format_summary(summary))
     return 0

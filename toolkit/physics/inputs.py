@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from renderers.base import Gaussians
+from toolkit.atomic import CorruptArtifactError, load_error_reason
 from toolkit.cameras import Cameras
 
 __all__ = ["PhysicsInput", "load_all_images"]
@@ -106,11 +107,13 @@ class PhysicsInput:
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:
-        """Write to ``path`` (a ``torch.save`` file of plain tensors and dicts)."""
+        """Write to ``path`` atomically (a ``torch.save`` file of plain tensors and dicts)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         g = {f.name: getattr(self.gaussians, f.name) for f in fields(self.gaussians)}
-        torch.save({
+        from toolkit.atomic import torch_save
+
+        torch_save({
             "format": _FORMAT,
             "version": 1,
             "gaussians": {k: (None if v is None else v.detach().cpu()) for k, v in g.items()},
@@ -133,7 +136,11 @@ class PhysicsInput:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"physics input file {path} does not exist (written by `projo4d run` after stage 0)")
-        d = torch.load(path, map_location="cpu", weights_only=False)
+        try:
+            d = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - truncated, not a torch file, foreign objects
+            raise CorruptArtifactError(f"{path} is unreadable ({load_error_reason(err)}); delete it or rerun `projo4d run` "
+                                       "(which sets it aside and rebuilds it)") from None
         if not isinstance(d, dict) or d.get("format") != _FORMAT:
             raise ValueError(f"{path} is not a projo4d physics input file (expected format {_FORMAT!r})")
         return cls(

@@ -40,6 +40,7 @@ from renderers import RENDERERS, Gaussians, get_renderer
 from strategies import Strategy, get_strategy
 from strategies.base import GROUPS
 from toolkit.metrics.geometry import chamfer_loss
+from toolkit.data.exclusion import EXCLUSION_META_KEY, apply_keep
 from toolkit.metrics.image import ssim_torch
 from toolkit.mpm import MPMSimulator, SimConfig
 from toolkit.physics.embedding import carry, embed
@@ -152,7 +153,6 @@ class InversePhysicsModule(pl.LightningModule):
             material=self.material.registry_name or type(self.material).__name__,
             material_options=dict(self.material.options),
             curriculum=self.curriculum.schedule_string(self.material.registry_name or None),
-            curriculum_name=self.curriculum.name,
             sim=cfg.to_dict(),
         )
         self.effect_init = dict(effects or {})
@@ -166,6 +166,9 @@ class InversePhysicsModule(pl.LightningModule):
         self.curriculum_step = 0
         self._sim: Optional[MPMSimulator] = None
         self._restored_grid: Optional[dict] = None
+        self._restored_substeps_floor = 0
+        #: substeps per frame of the latest rollout (logged as ``sim/substeps``; a change is logged)
+        self.substeps: Optional[int] = None
         self._cached_positions: Optional[torch.Tensor] = None
         self.history: list[dict] = []
 
@@ -217,6 +220,8 @@ class InversePhysicsModule(pl.LightningModule):
         # the images come from the input file, not from checkpoints
         self.register_buffer("images", inp.images, persistent=False)
         self.register_buffer("masks", inp.masks, persistent=False)
+        keep = (inp.meta or {}).get(EXCLUSION_META_KEY)  # PAC-NeRF's loss-exclusion pixels (frame -2 masks)
+        self.register_buffer("exclusion_keep", keep if keep is not None else torch.empty(0, dtype=torch.uint8), persistent=False)
         self._ground_truth = inp.ground_truth or {}
 
     # ------------------------------------------------------------------ helpers
@@ -245,6 +250,8 @@ class InversePhysicsModule(pl.LightningModule):
 
                 g = self._restored_grid
                 self._sim.set_grid(GridSpec(tuple(g["origin"]), tuple(g["dims"]), float(g["dx"])))
+            # a dt halving is kept for the rest of the fit, across resumes too
+            self._sim.substeps_floor = max(self._sim.substeps_floor, self._restored_substeps_floor)
         return self._sim
 
     def material_params(self) -> torch.Tensor:
@@ -320,6 +327,7 @@ class InversePhysicsModule(pl.LightningModule):
             "curriculum": self.curriculum.describe(self.material.registry_name or None),
             "history": self.history,
             "grid": None if self._sim is None or self._sim.grid is None else self._sim.grid.__dict__,
+            "substeps_floor": self._restored_substeps_floor if self._sim is None else self._sim.substeps_floor,
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
@@ -327,6 +335,7 @@ class InversePhysicsModule(pl.LightningModule):
         self.curriculum_step = int(state.get("curriculum_step", 0))
         self.history = list(state.get("history", []))
         self._restored_grid = state.get("grid")
+        self._restored_substeps_floor = int(state.get("substeps_floor", 0))
         self._sim = None
         saved = state.get("curriculum")
         unnamed = lambda stages: [{k: v for k, v in d.items() if k != "name"} for d in stages]  # noqa: E731
@@ -369,8 +378,23 @@ class InversePhysicsModule(pl.LightningModule):
         gravity = self.gravity if ("S" in groups and self.optimize_gravity) else self.gravity.detach()
         params = self.material_params() if "M" in groups else self.material_params().detach()
         effects = self.effect_params if "M" in groups else self.effect_params.detach()
+        # the simulator re-plans the substeps from these parameters (a stiffer material gets more)
         out = self.simulator.simulate(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=n_frames)
+        self._note_substeps(out.substeps)
         return x0, out.positions
+
+    def _note_substeps(self, substeps: int) -> None:
+        """Log a line when the substeps per frame change (a re-plan or a dt halving)."""
+        if substeps != self.substeps:
+            plan = self.simulator.last_plan
+            why = "" if plan is None else (
+                f" ({'dt halving' if substeps > plan.substeps else plan.reason}: wave speed {plan.wave_speed:.3g} m/s, "
+                f"initial speed {plan.max_speed:.3g} m/s, configured {plan.configured})")
+            if self.substeps is None:
+                log.info("simulating with %d substeps per frame%s", substeps, why)
+            else:
+                log.info("substeps per frame %d -> %d at iteration %d%s", self.substeps, substeps, self.curriculum_step, why)
+            self.substeps = int(substeps)
 
     def losses(self, stage, cams: Sequence[int], frames: Sequence[int]) -> dict[str, torch.Tensor]:
         """Loss terms of one iteration (differentiable with respect to the stage's groups)."""
@@ -396,8 +420,10 @@ class InversePhysicsModule(pl.LightningModule):
                 gt = self.images[cams, f].float() / 255.0
                 mask = self.masks[cams, f].float().unsqueeze(-1) / 255.0
                 gt = gt * mask
-                l1 = (render.rgb - gt).abs().mean(dim=(1, 2, 3))
-                ssim = ssim_torch(render.rgb, gt, reduction="none").reshape(len(cams), -1).mean(1)
+                keep = self.exclusion_keep[cams].float() / 255.0 if self.exclusion_keep.numel() else None
+                rgb, gt = apply_keep(render.rgb, gt, keep)
+                l1 = (rgb - gt).abs().mean(dim=(1, 2, 3))
+                ssim = ssim_torch(rgb, gt, reduction="none").reshape(len(cams), -1).mean(1)
                 per_cam = (1 - self.ssim_weight) * l1 + self.ssim_weight * (1 - ssim)
                 img_loss = img_loss + self.lambda_image * per_cam.sum()
             out["image"] = img_loss / len(frames)
@@ -416,6 +442,8 @@ class InversePhysicsModule(pl.LightningModule):
     def _log_step(self, at, losses: dict) -> None:
         est = self.estimate()
         rec: dict[str, Any] = {"step": self.curriculum_step, "stage": at.index, "stage_name": at.stage.name}
+        if self.substeps is not None:
+            rec["sim/substeps"] = self.substeps
         for k, v in losses.items():
             rec[f"loss/{k}"] = float(v.detach())
         for k, v in est["params"].items():

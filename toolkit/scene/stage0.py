@@ -53,9 +53,11 @@ from torch.utils.data import DataLoader, IterableDataset
 from renderers import RENDERERS, get_renderer
 from renderers.base import Gaussians, RenderOutput
 from toolkit.cameras import Cameras
+from toolkit.data.exclusion import apply_keep
 from toolkit.settings import DictSettings
 from toolkit.scene.deformation import DeformationConfig, DeformationNetwork
 from toolkit.scene.gaussian_model import DensificationConfig, GaussianModel
+from toolkit.scene.stage0_checkpoint import Stage0Checkpoint
 from toolkit.scene.initialization import (
     camera_extent,
     gic_num_points,
@@ -221,6 +223,8 @@ class TrainingViews:
         times: (T,) float32 frame times, seconds.
         frames: Scene frame index of each of the T frames.
         camera_indices: Scene camera index of each of the C cameras.
+        keep: (C, H, W) float32 loss weights (0 = pixel excluded: PAC-NeRF frame -2 masks,
+            :mod:`toolkit.data.exclusion`), or None.
     """
 
     cameras: Cameras
@@ -229,6 +233,7 @@ class TrainingViews:
     times: torch.Tensor
     frames: list[int]
     camera_indices: list[int]
+    keep: Optional[torch.Tensor] = None
 
     @property
     def n_frames(self) -> int:
@@ -250,6 +255,7 @@ class TrainingViews:
             times=self.times.to(device),
             frames=list(self.frames),
             camera_indices=list(self.camera_indices),
+            keep=None if self.keep is None else self.keep.to(device),
         )
 
     @classmethod
@@ -274,7 +280,10 @@ class TrainingViews:
         if mask_t is not None and composite_on_black:
             images = images * mask_t[..., None]
         times = torch.as_tensor(np.asarray(dm.scene.times)[frames], dtype=torch.float32)
-        return cls(dm.cameras[cams_idx], images, mask_t, times, frames, cams_idx)
+        from toolkit.data.exclusion import keep_weights
+
+        keep = keep_weights(dm.scene, cams_idx, size=(H, W))
+        return cls(dm.cameras[cams_idx], images, mask_t, times, frames, cams_idx, keep)
 
 
 class _StepStream(IterableDataset):
@@ -679,12 +688,14 @@ class Gaussians4DModule(pl.LightningModule):
         gs = g.gaussians(means=means, d_log_scales=d_ls, d_quats=d_q, sh_degree=self.active_sh_degree(step))
         out = self.renderer(gs, cams)
 
-        l1 = (out.rgb - gt).abs().mean()
-        ssim = self._ssim(out.rgb, gt)
+        rgb, gt = apply_keep(out.rgb, gt, views.keep)  # PAC-NeRF loss-exclusion masks (frame -2)
+        l1 = (rgb - gt).abs().mean()
+        ssim = self._ssim(rgb, gt)
         loss = (1.0 - s.lambda_dssim) * l1 + s.lambda_dssim * (1.0 - ssim)
         alpha_loss = None
         if views.masks is not None and s.lambda_alpha > 0:
-            alpha_loss = (out.alpha - views.masks[fi]).abs().mean()
+            alpha_err = (out.alpha - views.masks[fi]).abs()
+            alpha_loss = (alpha_err if views.keep is None else alpha_err * views.keep).mean()
             loss = loss + s.lambda_alpha * alpha_loss
         if dynamic and s.lambda_scale > 0:
             loss = loss + s.lambda_scale * g.scales(d_ls).mean()
@@ -759,24 +770,6 @@ def _colors_from_views(points: torch.Tensor, cameras: Cameras, images: torch.Ten
 # ====================================================================== checkpoints and a one-call fit
 
 
-class Stage0Checkpoint(pl.Callback):
-    """Save ``step_XXXXXX.ckpt`` every ``every_n`` iterations (the module's own counter, not
-    ``trainer.global_step``) and ``last.ckpt`` at the end of training."""
-
-    def __init__(self, dirpath: str | Path, every_n: Optional[int] = None, save_last: bool = True):
-        self.dirpath = Path(dirpath)
-        self.every_n = every_n
-        self.save_last = save_last
-
-    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: Gaussians4DModule, outputs, batch, batch_idx) -> None:
-        if self.every_n and pl_module.step % self.every_n == 0:
-            trainer.save_checkpoint(self.dirpath / f"step_{pl_module.step:06d}.ckpt")
-
-    def on_train_end(self, trainer: pl.Trainer, pl_module: Gaussians4DModule) -> None:
-        if self.save_last:
-            trainer.save_checkpoint(self.dirpath / "last.ckpt")
-
-
 def fit_stage0(
     data: Stage0DataModule,
     module: Optional[Gaussians4DModule] = None,
@@ -800,7 +793,8 @@ def fit_stage0(
         stop_at: Stop after this iteration (the schedule is unchanged, so a later resume
             continues it).
         accelerator: Lightning accelerator (``"cpu"``, ``"gpu"``, ``"auto"``).
-        progress_bar: Show Lightning's progress bar.
+        progress_bar: Show the stage-0 progress bar (``stage 0``, iteration/total, ETA, loss;
+            drawn only on a terminal, see :func:`toolkit.progress.stage0_progress_bar`).
 
     Returns:
         The trained module.
@@ -810,6 +804,10 @@ def fit_stage0(
     callbacks: list[pl.Callback] = []
     if out_dir is not None:
         callbacks.append(Stage0Checkpoint(out_dir, checkpoint_every))
+    if progress_bar:
+        from toolkit.progress import stage0_progress_bar
+
+        callbacks.append(stage0_progress_bar())
     trainer = pl.Trainer(
         accelerator=accelerator,
         devices=1,

@@ -211,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
     from toolkit.synthetic.errors import SyntheticError
 
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
+    logging.getLogger().setLevel(logging.WARNING if args.quiet else logging.INFO)  # the CLI installed a handler already
     parser = args._parser
     try:
         if args.what == "scene":
