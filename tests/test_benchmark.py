@@ -399,7 +399,7 @@ def test_ray_executor_runs_jobs_and_stops_them_at_the_time_limit(tmp_path):
             for i, s in enumerate([0.2, 0.3, 60.0])]
     ex = RayExecutor(None, gpus_per_job=0.0, cpus_per_job=1.0, fn="tests.bench_helpers:sleepy_job")
     try:
-        counts = run_jobs(jobs, ex, lambda e, **f: events.append({"event": e, **f}), deadline=time.time() + 12.0, grace=3.0,
+        counts = run_jobs(jobs, ex, lambda e, **f: events.append({"event": e, **f}), deadline=time.time() + 30.0, grace=3.0,
                           heartbeat=100, min_start_s=0)
     finally:
         ex.shutdown()

@@ -143,6 +143,9 @@ def execute_job(job: dict) -> dict:
     """
     install_stop_handler()
     _STOP.clear()
+    from toolkit.verbosity import configure_output, verbose_from_environment
+
+    configure_output(verbose_from_environment())  # workers are as quiet as the command that started them
     t0 = time.perf_counter()
     status, result, error = "done", {}, None
     from toolkit.checkpointing import RunInterrupted  # a fit stopped by SIGTERM after saving its checkpoint

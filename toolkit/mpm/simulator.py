@@ -22,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
@@ -32,6 +31,7 @@ import warp as wp
 from materials import Material, get_material
 from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
 from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
+from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
 from toolkit.mpm.kernels import (
     NO_FLAG,
@@ -49,113 +49,6 @@ __all__ = ["MPMSimulator", "GridSpec", "SimulationResult", "RolloutResult", "Sub
 log = logging.getLogger(__name__)
 
 _KERNEL_CACHE: dict[tuple, object] = {}
-
-
-@dataclass(frozen=True)
-class GridSpec:
-    """A bounded grid: node (i, j, k) at ``origin + (i, j, k) * dx``, ``dims`` nodes per axis."""
-
-    origin: tuple[float, float, float]
-    dims: tuple[int, int, int]
-    dx: float
-
-    @property
-    def upper(self) -> tuple[float, float, float]:
-        return tuple(o + (n - 1) * self.dx for o, n in zip(self.origin, self.dims))
-
-    @property
-    def n_nodes(self) -> int:
-        return int(np.prod(self.dims))
-
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: whether each point's whole stencil lies inside the grid."""
-        X = (np.asarray(points, np.float64) - np.asarray(self.origin)) / self.dx
-        return np.all((X >= 0.5) & (X < np.asarray(self.dims) - 1.5), axis=1)
-
-    def ground_layer(self, height: float) -> int:
-        """Index ``j`` of the highest node layer with ``y <= height`` (ground nodes are ``j' <= j``).
-
-        Decided in float64 on the dx lattice (``floor((height - origin_y) / dx + 1e-6)``), never from
-        a float32 node position, so the ground layers do not depend on where the grid starts. May be
-        negative (the ground lies below the grid) or ``>= dims[1]``.
-        """
-        return ground_lattice_index(height, self.dx) - int(round(self.origin[1] / self.dx))
-
-    def covers(self, other: "GridSpec") -> bool:
-        return all(
-            so <= oo + 1e-9 and so + (sn - 1) * self.dx >= oo + (on - 1) * self.dx - 1e-9
-            for so, sn, oo, on in zip(self.origin, self.dims, other.origin, other.dims)
-        )
-
-
-@dataclass
-class SimulationResult:
-    """Differentiable simulation output.
-
-    Attributes:
-        positions: (T+1, N, 3) float32, world frame, metres; index t is time ``t * frame_dt``
-            (index 0 is the initial state).
-        velocities: (T+1, N, 3) float32, m/s.
-        substeps: substeps per frame actually used (larger than configured after dt halving).
-    """
-
-    positions: torch.Tensor
-    velocities: torch.Tensor
-    substeps: int
-
-
-@dataclass
-class RolloutResult:
-    """Forward-only output (torch, no gradients): like :class:`SimulationResult`, plus
-    ``F`` (T+1, N, 3, 3) (elastic) deformation gradients and ``J`` (T+1, N) the tracked volume ratio
-    when asked for (``J`` is tracked by fluids only and stays 1 for solids, whose volume ratio is
-    ``det F``), and ``tracers`` (T+1, M, 3) positions of passive tracer points when given."""
-
-    positions: torch.Tensor
-    velocities: torch.Tensor
-    substeps: int
-    F: Optional[torch.Tensor] = None
-    J: Optional[torch.Tensor] = None
-    tracers: Optional[torch.Tensor] = None
-
-
-class _ParticleState:
-    """Per-particle arrays of one substep: x, v (vec3), C, F (mat33), J (float)."""
-
-    def __init__(self, n: int, device: str, requires_grad: bool = False):
-        self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.v = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.C = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
-        self.F = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
-        self.J = wp.zeros(n, dtype=float, device=device, requires_grad=requires_grad)
-
-    def arrays(self) -> tuple:
-        return (self.x, self.v, self.C, self.F, self.J)
-
-    def assign(self, other: "_ParticleState") -> None:
-        for dst, src in zip(self.arrays(), other.arrays()):
-            wp.copy(dst, src)
-
-    def zero_grad(self) -> None:
-        for a in self.arrays():
-            if a.grad is not None:
-                a.grad.zero_()
-
-
-class _Grid:
-    def __init__(self, dims: tuple[int, int, int], device: str, requires_grad: bool = False):
-        self.m = wp.zeros(dims, dtype=float, device=device, requires_grad=requires_grad)
-        self.mv = wp.zeros(dims, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.v = wp.zeros(dims, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-
-    def clear(self) -> None:
-        self.m.zero_()
-        self.mv.zero_()
-
-    def zero_grad(self) -> None:
-        for a in (self.m, self.mv, self.v):
-            if a.grad is not None:
-                a.grad.zero_()
 
 
 class MPMSimulator:
@@ -286,7 +179,8 @@ class MPMSimulator:
 
     # ------------------------------------------------------------------ grid
     def grid_for(self, x0: np.ndarray, v0: np.ndarray | None = None, n_frames: int = 0, gravity=None) -> GridSpec:
-        """The grid used for a rollout from ``x0``.
+        """The grid used for a rollout from ``x0`` ((N, 3) positions, m; only their bounding box
+        matters, so the box's two corners give the same grid).
 
         With ``SimConfig.domain`` set, that box. Otherwise the particles' bounding box, swept
         along the ballistic path ``v0 t + g t^2 / 2`` over the rollout (1.25x the speed, floored
@@ -385,8 +279,8 @@ class MPMSimulator:
         if key not in self._buffers:
             self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "pool"}
             self._graphs = {}
-            states = [_ParticleState(n, self.device, requires_grad=True) for _ in range(chunk + 1)]
-            grids = [_Grid(self._grid.dims, self.device, requires_grad=True) for _ in range(chunk)]
+            states = [ParticleBuffers(n, self.device, requires_grad=True) for _ in range(chunk + 1)]
+            grids = [GridBuffers(self._grid.dims, self.device, requires_grad=True) for _ in range(chunk)]
             self._buffers[key] = (states, grids)
         return self._buffers[key]
 
@@ -395,9 +289,9 @@ class MPMSimulator:
         if key not in self._buffers:
             self._graphs = {}
             self._buffers[key] = (
-                _ParticleState(n, self.device),
-                _ParticleState(n, self.device),
-                _Grid(self._grid.dims, self.device),
+                ParticleBuffers(n, self.device),
+                ParticleBuffers(n, self.device),
+                GridBuffers(self._grid.dims, self.device),
             )
         return self._buffers[key]
 
@@ -437,7 +331,7 @@ class MPMSimulator:
         return self._persistent(("violation_speed",), lambda: wp.zeros(1, dtype=float, device=self.device))
 
     # ------------------------------------------------------------------ substeps
-    def _substep(self, s_in: _ParticleState, s_out: _ParticleState, grid: _Grid, params, per_particle: int,
+    def _substep(self, s_in: ParticleBuffers, s_out: ParticleBuffers, grid: GridBuffers, params, per_particle: int,
                  gravity, effect_params, dt: float, step: int, status, tracers=None) -> None:
         """One substep s_in -> s_out; ``step`` is the frame-local substep index written to the flags."""
         p2g, grid_update, g2p = self._kernels()
@@ -471,7 +365,7 @@ class MPMSimulator:
         )
 
     # ------------------------------------------------------------------ checks
-    def _check_status(self, status, frame: int, substeps: int, state: _ParticleState) -> None:
+    def _check_status(self, status, frame: int, substeps: int, state: ParticleBuffers) -> None:
         """Raise for the first failure flagged during ``frame`` (flags hold frame-local substeps)."""
         flags = status.numpy()
         oob = flags[0] if self.config.out_of_domain != "clamp" else NO_FLAG
@@ -550,17 +444,26 @@ class MPMSimulator:
                 f"effect_params must have {self.n_effect_params} values ({', '.join(self.effect_param_names) or 'no effects'}), "
                 f"got {effect_params.shape[0]}"
             )
-        for name, t in (("x0", x0), ("v0", v0), ("gravity", gravity), ("effect_params", effect_params)):
-            if not torch.isfinite(t).all():
-                raise ValueError(f"{name} contains NaN or inf values")
         if not isinstance(n_frames, int) or n_frames < 0:
             raise ValueError(f"n_frames must be an integer >= 0, got {n_frames!r}")
-        xs = x0.detach().cpu().numpy()
-        spec = self.grid_for(xs, v0.detach().mean(0).cpu().numpy(), n_frames, gravity.detach().cpu().numpy())
+        # one small transfer instead of the particles: the bounding box (NaN/inf propagate into it),
+        # the mean initial velocity, gravity and the effects
+        with torch.no_grad():
+            lo, hi = torch.aminmax(x0.detach(), dim=0)
+            on = lambda t: t.detach().to(device=x0.device, dtype=torch.float32).reshape(-1)  # noqa: E731
+            summary = torch.cat([lo, hi, on(v0.mean(0)), on(v0.abs().amax(0)), on(gravity), on(effect_params)])
+            summary = summary.cpu().numpy().astype(np.float64)
+        lo_np, hi_np, v_mean = summary[0:3], summary[3:6], summary[6:9]
+        for name, part in (("x0", summary[0:6]), ("v0", summary[6:12]), ("gravity", summary[12:15]),
+                           ("effect_params", summary[15:])):
+            if not np.isfinite(part).all():
+                raise ValueError(f"{name} contains NaN or inf values")
+        spec = self.grid_for(np.stack([lo_np, hi_np]), v_mean, n_frames, summary[12:15])
         self._check_memory(spec, n, n_frames, differentiable)
         self.set_grid(spec)
-        outside = ~spec.contains(xs)
-        if outside.any():
+        if not spec.contains(np.stack([lo_np, hi_np])).all():
+            xs = x0.detach().cpu().numpy()  # only on failure: name a particle that lies outside
+            outside = ~spec.contains(xs)
             i = int(np.nonzero(outside)[0][0])
             raise OutOfDomainError(
                 f"{int(outside.sum())} initial particle(s) lie outside the simulation domain "
@@ -800,10 +703,10 @@ class MPMSimulator:
             wp.copy(wp.from_torch(tr_out[0], dtype=wp.vec3), tr_pair[0])
         graphs = self._graphs if self.use_graphs() else None
         units = self.chunks(n_frames, substeps) if keep_checkpoints else [(f, f * substeps, substeps) for f in range(n_frames)]
-        checkpoints: list[_ParticleState] = []
+        checkpoints: list[ParticleBuffers] = []
         for frame, first, length in units:
             if keep_checkpoints:
-                ck = _ParticleState(n, self.device)
+                ck = ParticleBuffers(n, self.device)
                 ck.assign(a)
                 checkpoints.append(ck)
             local = first - frame * substeps
