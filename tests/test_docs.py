@@ -189,3 +189,14 @@ def test_sphinx_build_has_no_warnings(tmp_path: Path):
     assert "WARNING" not in output and "ERROR" not in output, output[-8000:]
     assert (tmp_path / "html" / "index.html").is_file()
     assert (tmp_path / "html" / "reference" / "api" / "toolkit" / "toolkit.mpm.simulator.html").is_file()
+    # math offline: MathJax is served from the site itself, not from a CDN
+    concepts = (tmp_path / "html" / "concepts.html").read_text()
+    assert 'src="_static/mathjax/tex-chtml.js"' in concepts and "cdn.jsdelivr" not in concepts
+    assert (tmp_path / "html" / "_static" / "mathjax" / "output" / "chtml" / "fonts" / "woff-v2").is_dir()
+    # the command-line reference has a section per command, generated from the parsers
+    from toolkit.cli import COMMANDS
+
+    cli_page = (tmp_path / "html" / "reference" / "cli.html").read_text()
+    for name in COMMANDS:
+        assert f'id="projo4d-{name}"' in cli_page, name
+    assert "--model.curriculum" in cli_page and "usage: projo4d run" in cli_page

@@ -1,4 +1,4 @@
-"""The particle viewer's offscreen rendering (matplotlib fallback) and its open3d point-cloud helpers."""
+"""The particle viewer's static rendering (matplotlib) and its point-cloud helpers (numpy/scipy, no open3d)."""
 
 from __future__ import annotations
 
@@ -24,10 +24,33 @@ def test_point_cloud_io_and_nearest_distances(tmp_path):
     assert np.allclose(read_cloud(path), pts, atol=1e-6)
     d = nearest_distances(pts, pts + [0.0, 0.0, 0.01])
     assert d.shape == (500,) and d.max() <= 0.01 + 1e-9
-    from scipy.spatial import cKDTree
-
     other = np.random.default_rng(2).random((200, 3))
-    assert np.allclose(nearest_distances(pts, other), cKDTree(other).query(pts)[0])
+    brute = np.sqrt(((pts[:, None, :] - other[None, :, :]) ** 2).sum(-1)).min(1)  # the slow, obvious twin
+    assert np.allclose(nearest_distances(pts, other), brute)
+    # colours survive as uchar RGB; other formats need the optional open3d extra
+    from toolkit.data.ply import _parse_header
+
+    data = path.read_bytes()
+    _, elements, _ = _parse_header(data, path)
+    assert [p for p, _ in elements[0][2]] == ["x", "y", "z", "red", "green", "blue"]
+    with pytest.raises(ValueError, match="use a .ply suffix"):
+        write_cloud(tmp_path / "c.pcd", pts)
+
+
+def test_static_view_has_a_colour_bar_and_captions_outside_the_plots():
+    """The error scale is the 95th percentile of the distances (cm on the bar); the caption band is blank picture-free."""
+    import toolkit.viewer as viewer
+
+    clouds = _clouds()
+    _, scale = viewer._error_colors(clouds)
+    d = np.concatenate([np.sqrt(((p[:, None] - g[None]) ** 2).sum(-1)).min(1) for p, g in zip(clouds.predicted, clouds.truth)])
+    assert scale == pytest.approx(np.percentile(d, 95), rel=1e-9)
+    (img,), _ = viewer.render_frames(clouds, [3], backend="matplotlib", size=(480, 240))
+    right = img[:, int(0.87 * 480):]  # the colour bar: a column of saturated colours
+    sat = right.max(-1).astype(int) - right.min(-1).astype(int)
+    assert (sat > 100).sum() > 200
+    top = img[: int(0.012 * 240) + 1]  # above the caption's text line: nothing drawn
+    assert top.min() > 200
 
 
 def test_matplotlib_render_and_auto_fallback(monkeypatch):

@@ -6,3 +6,7 @@ need them.
 """
 
 __version__ = "0.1.0"
+
+from toolkit.resources import configs_dir, find_config  # noqa: E402  (light: importlib and pathlib only)
+
+__all__ = ["__version__", "configs_dir", "find_config"]

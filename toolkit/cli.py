@@ -38,6 +38,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("toolkit.commands.evaluate", "re-evaluate a fitted run folder: future prediction, all metrics, report"),
     "benchmark": ("toolkit.benchmark.commands", "compare strategies over a suite of scenes, in parallel; paper-style tables"),
     "view": ("toolkit.commands.view", "show predicted and ground-truth particles over time (browser viewer, or PNG/MP4 files)"),
+    "export": ("toolkit.commands.export", "export a fitted run: refined Gaussians (3DGS PLY), per-frame PLY sequence, digital twin"),
+    "simulate": ("toolkit.commands.simulate", "re-simulate a digital twin with new v0, parameters, effects or frames; render video"),
 }
 
 

@@ -367,7 +367,8 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     inp = module.input
     cams = s.report_cameras or (inp.train_cameras[:2] + inp.held_out_cameras[:2])
     files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
-                         evaluation, inp.ground_truth, inp.images.numpy(), renders, cams)
+                         evaluation, inp.ground_truth, inp.images.numpy(), renders, cams,
+                         uncertainty=module.uncertainty_result)
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"]
     summary = _summary(module, evaluation, timings, files)
     write_json(run / "summary.json", summary)
@@ -383,6 +384,9 @@ def _summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> 
         rows.append({"parameter": name, "estimate": value, "truth": truth})
     for i, c in enumerate("xyz"):
         rows.append({"parameter": f"v0_{c}", "estimate": est["v0"][i], "truth": None if gt.get("v0") is None else gt["v0"][i]})
+    from toolkit.physics.uncertainty import annotate_rows  # 90 % intervals and identifiability labels (issue #24)
+
+    annotate_rows(rows, module.uncertainty_result)
     geo = evaluation.get("geometry") or {}
     img = (evaluation.get("images") or {}).get("all_cameras") or {}
     from toolkit.physics.world_checks import to_dataset_frame
@@ -394,6 +398,8 @@ def _summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> 
         "material": est["material"],
         "curriculum": module.curriculum.schedule_string(module.material.registry_name or None),
         "parameters": rows,
+        "uncertainty": None if module.uncertainty_result is None else {
+            k: module.uncertainty_result[k] for k in ("level", "noise_std", "dof", "frames", "rollouts", "seconds", "prior_step")},
         "errors": evaluation.get("errors", {}),
         "future": {"cd": geo.get("cd_future"), "emd": geo.get("emd_future"), "psnr": img.get("psnr_future"),
                    "ssim": img.get("ssim_future")},
@@ -407,11 +413,15 @@ def _summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> 
 def format_summary(summary: dict) -> str:
     """A small table of the estimate next to the truth, for terminals."""
     lines = [f"material {summary['material']}, curriculum {summary['curriculum']}",
-             f"{'parameter':<18}{'estimate':>14}{'truth':>14}"]
+             f"{'parameter':<18}{'estimate':>14}{'truth':>14}  {'90 % interval':<24}label"]
+    from toolkit.physics.uncertainty import format_interval
+
     for r in summary["parameters"]:
         est, tru = r["estimate"], r["truth"]
         fmt = (lambda v: "-" if v is None else (f"{v:.4g}"))  # noqa: E731
-        lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}")
+        label = r.get("label") or "-"
+        label += f" ({r['note']})" if r.get("note") else ""
+        lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
     fut = summary["future"]
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "

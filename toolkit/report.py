@@ -23,7 +23,7 @@ from toolkit.atomic import write_with
 from toolkit.plotting import pyplot, save_figure
 
 __all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report", "plot_evaluation_trajectories",
-           "compressed_axis"]
+           "compressed_axis", "write_uncertainty_table"]
 
 _LOG_PARAMS = {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"}
 
@@ -104,13 +104,19 @@ def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
     return save_figure(fig, path)
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
-    """Burn a small label into the top-left corner (no font dependency: a plain bar)."""
+def caption_below(img: np.ndarray, text: str, band: int = 14) -> np.ndarray:
+    """``img`` (H, W, 3) uint8 with a white band of ``band`` px *below* it holding ``text`` in black:
+    the caption never covers the picture, which keeps its own resolution."""
     from PIL import Image, ImageDraw
 
-    im = Image.fromarray(img)
-    ImageDraw.Draw(im).text((3, 2), text, fill=(255, 255, 255))
-    return np.asarray(im)
+    h, w = img.shape[:2]
+    canvas = Image.new("RGB", (w, h + band), (255, 255, 255))
+    canvas.paste(Image.fromarray(np.ascontiguousarray(img)), (0, 0))
+    ImageDraw.Draw(canvas).text((3, h + 1), text, fill=(0, 0, 0))
+    return np.asarray(canvas)
+
+
+_label = caption_below  # the name older callers use
 
 
 def comparison_video(gt: np.ndarray, pred: np.ndarray, n_train: int, path: str | Path, fps: float = 8.0,
@@ -154,11 +160,17 @@ def comparison_video(gt: np.ndarray, pred: np.ndarray, n_train: int, path: str |
 
 def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Sequence[dict], evaluation: dict,
                  truth: Optional[dict], gt_images: Optional[np.ndarray], pred_images: Optional[np.ndarray],
-                 cameras: Sequence[int]) -> list[Path]:
-    """All figures and the video into ``run_dir/report``; returns the files."""
+                 cameras: Sequence[int], uncertainty: Optional[dict] = None) -> list[Path]:
+    """All figures and the video into ``run_dir/report``; returns the files.
+
+    ``uncertainty`` (an :meth:`toolkit.physics.uncertainty.Uncertainty.to_dict` result) adds
+    ``uncertainty.md``: each parameter's estimate, interval and identifiability label.
+    """
     report = Path(run_dir) / "report"
     report.mkdir(parents=True, exist_ok=True)
     files = [plot_trajectories(history, curriculum, report / "trajectories.png", truth)]
+    if uncertainty:
+        files.append(write_uncertainty_table(uncertainty, report / "uncertainty.md", truth))
     p = plot_per_frame(evaluation, report / "per_frame.png")
     if p:
         files.append(p)
@@ -168,6 +180,23 @@ def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Seque
     if any(k.startswith("eval/") for h in history for k in h):
         files.append(plot_evaluation_trajectories(history, curriculum, report / "evaluation_trajectories.png"))
     return files
+
+
+def write_uncertainty_table(uncertainty: dict, path: str | Path, truth: Optional[dict] = None) -> Path:
+    """A markdown table: parameter, estimate, interval at the result's level, label, note (and the truth when known)."""
+    truth = truth or {}
+    known = dict(truth.get("params") or {})
+    if truth.get("v0") is not None:
+        known.update({f"v0_{c}": truth["v0"][i] for i, c in enumerate("xyz")})
+    level = round(100 * float(uncertainty.get("level", 0.9)))
+    lines = [f"| parameter | estimate | {level} % interval | label | truth | note |", "|---|---|---|---|---|---|"]
+    for name, p in uncertainty["parameters"].items():
+        tr = known.get(name)
+        lines.append(f"| {name} | {p['value']:.4g} | [{p['low']:.3g}, {p['high']:.3g}] | {p['label']} | "
+                     f"{'-' if tr is None else f'{tr:.4g}'} | {p.get('note', '')} |")
+    path = Path(path)
+    write_with(path, lambda t: Path(t).write_text("\n".join(lines) + "\n"))
+    return path
 
 
 def compressed_axis(curriculum: Sequence[dict], cap: Optional[int] = None):

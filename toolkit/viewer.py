@@ -1,19 +1,20 @@
 """Viewing predicted and ground-truth particles over time (``projo4d view``).
 
-* Where a display exists, :func:`show` opens an open3d window that plays the sequence (space:
-  pause/play, N/P: next/previous frame, G: toggle the ground truth).
-* On a headless machine, :func:`write_views` renders every frame offscreen to PNG files and an
-  MP4: with open3d's offscreen renderer where it works (it needs EGL or Vulkan, probed once in a
-  subprocess because a failing renderer can take the process down), else with a matplotlib 3D
-  scatter, which works everywhere.
+* Interactively, in the browser: :func:`show` starts the viser viewer of :mod:`toolkit.twin.viewer`
+  (time slider, prediction against truth, the cameras, sliders that re-simulate the twin); it
+  works on a headless server too (open the printed address, or forward the port).
+* As files: :func:`write_views` renders every frame to PNG files and an MP4 with matplotlib (works
+  everywhere; open3d's offscreen renderer is an optional backend when the ``open3d`` extra is
+  installed and EGL/Vulkan work).
 
-Each image shows the ground truth (left, grey) next to the prediction (right) coloured by its
-error: each predicted particle's distance to the nearest ground-truth point, on a fixed scale
-for the whole sequence. Frames after the training ones are marked *future*.
+Each image shows the ground truth (left, blue) next to the prediction (right) coloured by its
+error: each predicted particle's distance to the nearest ground-truth point, in centimetres, on a
+fixed scale for the whole sequence (colour bar); the truth is drawn faintly behind it. Axes are in
+metres with ``y`` up, equal aspect. Captions (run, frame, time, *fitted* or *future*) sit above the
+plots, outside the picture.
 
-Point-cloud I/O and nearest-neighbour queries go through open3d (:func:`read_cloud`,
-:func:`write_cloud`, :func:`nearest_distances`), which handles clouds of millions of points;
-plain numpy/scipy fallbacks keep them working without it.
+Point-cloud I/O and nearest-neighbour queries use numpy and scipy (:func:`read_cloud`,
+:func:`write_cloud`, :func:`nearest_distances`); open3d is not needed.
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ log = logging.getLogger(__name__)
 
 # ------------------------------------------------------------------------------------ point-cloud I/O
 def _o3d():
+    """open3d when the optional extra is installed and importable, else None."""
     try:
-        import open3d as o3d  # noqa: PLC0415 - heavy: imported only here
+        import open3d as o3d  # noqa: PLC0415 - optional, heavy
 
         return o3d
     except Exception:  # noqa: BLE001 - missing wheel or a missing system library (libusb)
@@ -47,50 +49,60 @@ def _o3d():
 
 
 def read_cloud(path: str | Path) -> np.ndarray:
-    """(N, 3) float64 points of a point-cloud file (PLY, PCD, XYZ, ... through open3d)."""
-    o3d = _o3d()
-    if o3d is not None:
-        pcd = o3d.io.read_point_cloud(str(path))
-        pts = np.asarray(pcd.points)
-        if len(pts):
-            return pts
+    """(N, 3) float64 points of a PLY point cloud (ASCII or binary; :func:`toolkit.data.ply.read_ply_points`).
+
+    Other formats (PCD, XYZ, ...) are read through open3d when the optional extra is installed.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        o3d = _o3d()
+        if o3d is None:
+            raise ValueError(f"{path}: only PLY point clouds are read without open3d (pip install 'projo4d[open3d]')")
+        return np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
     from toolkit.data.ply import read_ply_points
 
     return np.asarray(read_ply_points(path), dtype=np.float64)
 
 
 def write_cloud(path: str | Path, points: np.ndarray, colors: Optional[np.ndarray] = None) -> Path:
-    """Write points (and RGB colours in [0, 1]) to a point-cloud file (format from the suffix)."""
+    """Write (N, 3) points, m (and (N, 3) RGB colours in [0, 1]) as a binary little-endian PLY
+    (``x y z`` float32, ``red green blue`` uchar)."""
+    pts = np.asarray(points, dtype="<f4")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {pts.shape}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    o3d = _o3d()
-    if o3d is not None:
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-        if colors is not None:
-            pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64))
-        if not o3d.io.write_point_cloud(str(path), pcd):
-            raise OSError(f"open3d could not write {path}")
-        return path
-    from toolkit.data.ply import write_ply_points
+    if path.suffix.lower() != ".ply":
+        raise ValueError(f"{path}: write_cloud writes PLY files; use a .ply suffix")
+    if colors is None:
+        from toolkit.data.ply import write_ply_points
 
-    return write_ply_points(path, points)
+        return write_ply_points(path, pts)
+    cols = np.asarray(colors, dtype=np.float64)
+    if cols.shape != pts.shape:
+        raise ValueError(f"colors must have shape {pts.shape} (RGB in [0, 1]), got {cols.shape}")
+    table = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, k in enumerate("xyz"):
+        table[k] = pts[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        table[k] = np.clip(np.round(cols[:, i] * 255), 0, 255).astype(np.uint8)
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header.encode("ascii") + table.tobytes())
+    return path
 
 
 def nearest_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """For each point of ``a`` (N, 3), the distance to its nearest neighbour in ``b`` (M, 3)."""
+    """For each point of ``a`` (N, 3), the distance (same units) to its nearest neighbour in ``b`` (M, 3)."""
+    from scipy.spatial import cKDTree
+
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     if len(a) == 0:
         return np.zeros(0)
     if len(b) == 0:
         return np.full(len(a), np.inf)
-    o3d = _o3d()
-    if o3d is not None:
-        pa = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a))
-        pb = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b))
-        return np.asarray(pa.compute_point_cloud_distance(pb))
-    from scipy.spatial import cKDTree
-
     return cKDTree(b).query(a, k=1)[0]
 
 
@@ -207,17 +219,24 @@ def _bounds(clouds: RunClouds) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _error_colors(clouds: RunClouds) -> tuple[list[np.ndarray], float]:
-    """Per frame, RGB colours of the predicted particles by distance to the truth (viridis), and the scale."""
+    """Per frame, RGB colours of the predicted particles by distance to the truth (viridis), and the
+    scale in metres (the 95th percentile of all distances: the top of the colour bar)."""
     import matplotlib
 
     if not clouds.truth:
-        return [np.tile([0.12, 0.47, 0.71], (clouds.predicted.shape[1], 1)) for _ in range(clouds.n_frames)], 0.0
+        return [np.tile(np.asarray(PREDICTION_COLOR), (clouds.predicted.shape[1], 1)) for _ in range(clouds.n_frames)], 0.0
     dists = [nearest_distances(p, g) for p, g in zip(clouds.predicted, clouds.truth)]
     finite = np.concatenate([d[np.isfinite(d)] for d in dists]) if dists else np.zeros(1)
     scale = float(np.percentile(finite, 95)) if finite.size else 1.0
     scale = scale if scale > 0 else 1.0
-    cmap = matplotlib.colormaps["viridis"]
+    cmap = matplotlib.colormaps[ERROR_CMAP]
     return [cmap(np.clip(d / scale, 0, 1))[:, :3] for d in dists], scale
+
+
+#: matplotlib colours: the truth blue, a prediction without truth orange; errors on this colour map
+TRUTH_COLOR = (0.16, 0.35, 0.78)
+PREDICTION_COLOR = (1.0, 0.43, 0.0)
+ERROR_CMAP = "plasma"
 
 
 def _caption(clouds: RunClouds, t: int) -> str:
@@ -226,38 +245,60 @@ def _caption(clouds: RunClouds, t: int) -> str:
 
 def _render_matplotlib(clouds: RunClouds, frames: Sequence[int], size: tuple[int, int], elev: float, azim: float,
                        point_size: float) -> list[np.ndarray]:
+    """One image per frame: truth | prediction coloured by error (+ colour bar), axes in metres, y up."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
 
     lo, hi = _bounds(clouds)
     colors, scale = _error_colors(clouds)
     dpi = 100
     out = []
     panels = 2 if clouds.truth else 1
+    fs = max(5.0, min(9.0, size[1] / 60))
+
+    def marker(n: int, n_ref: int) -> float:
+        """Marker area (pt^2) so a sparse cloud covers its volume like a dense one: spacing ~ n^(-1/3)."""
+        return float(np.clip(point_size * (max(n_ref, 1) / max(n, 1)) ** (2 / 3), point_size, 40 * point_size))
+
     for t in frames:
+        n_ref = max(clouds.predicted.shape[1], len(clouds.truth[t]) if clouds.truth else 0)
         fig = plt.figure(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
-        titles = (["ground truth", f"prediction (colour: error, 0-{scale * 100:.1f} cm)"] if clouds.truth else ["prediction"])
+        # caption in its own band above the plots, never over the picture
+        fig.text(0.5, 0.985, _caption(clouds, t), ha="center", va="top", fontsize=fs + 1)
+        right = 0.86 if clouds.truth else 0.98
+        width = (right - 0.02) / panels
         for k in range(panels):
-            ax = fig.add_subplot(1, panels, k + 1, projection="3d")
+            ax = fig.add_axes((0.02 + k * width, 0.04, width, 0.86), projection="3d")
             if clouds.truth and k == 0:
-                pts, col = clouds.truth[t], "0.45"
+                pts, col, title = clouds.truth[t], [TRUTH_COLOR], "ground truth (blue)"
             else:
                 pts, col = clouds.predicted[t], colors[t]
+                title = "prediction, colour: distance to truth" if clouds.truth else "prediction"
                 if clouds.truth:  # the truth faintly behind the prediction, for reference
                     g = clouds.truth[t]
-                    ax.scatter(g[:, 0], g[:, 2], g[:, 1], s=point_size * 0.5, c="0.85", depthshade=False, linewidths=0)
+                    ax.scatter(g[:, 0], g[:, 2], g[:, 1], s=marker(len(g), n_ref) * 0.5, c=[(0.75, 0.8, 0.92)],
+                               depthshade=False, linewidths=0, alpha=0.5)
             # y is up in the toolkit; matplotlib's vertical axis is z
-            ax.scatter(pts[:, 0], pts[:, 2], pts[:, 1], s=point_size, c=col, depthshade=False, linewidths=0)
+            ax.scatter(pts[:, 0], pts[:, 2], pts[:, 1], s=marker(len(pts), n_ref), c=col, depthshade=False, linewidths=0)
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[2], hi[2])
             ax.set_zlim(lo[1], hi[1])
             ax.set_box_aspect((1, 1, 1))
             ax.view_init(elev=elev, azim=azim)
-            ax.set_title(titles[k], fontsize=8)
-            ax.tick_params(labelsize=5)
-        fig.suptitle(_caption(clouds, t), fontsize=9)
+            ax.set_title(title, fontsize=fs, pad=0)
+            ax.set_xlabel("x (m)", fontsize=fs, labelpad=-6)
+            ax.set_ylabel("z (m)", fontsize=fs, labelpad=-6)
+            ax.set_zlabel("y, up (m)", fontsize=fs, labelpad=-6)
+            ax.tick_params(labelsize=fs - 2, pad=-3)
+        if clouds.truth:
+            cax = fig.add_axes((0.88, 0.15, 0.02, 0.65))
+            bar = fig.colorbar(ScalarMappable(Normalize(0, scale * 100), matplotlib.colormaps[ERROR_CMAP]), cax=cax)
+            bar.set_label("distance to truth (cm)", fontsize=fs)
+            bar.ax.tick_params(labelsize=fs - 1)
         fig.canvas.draw()
         img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
         plt.close(fig)
@@ -310,8 +351,8 @@ def render_frames(clouds: RunClouds, frames: Optional[Sequence[int]] = None, bac
     """RGB images (H, W, 3) uint8 of ``frames`` (default all) and the backend used.
 
     Args:
-        backend: ``"open3d"``, ``"matplotlib"`` or ``"auto"`` (open3d's offscreen renderer when
-            :func:`open3d_offscreen_available`, else matplotlib).
+        backend: ``"matplotlib"`` (axes in metres, colour bar), ``"auto"`` (the same) or ``"open3d"``
+            (optional extra; needs :func:`open3d_offscreen_available`).
     """
     frames = list(range(clouds.n_frames)) if frames is None else [int(t) for t in frames]
     bad = [t for t in frames if not 0 <= t < clouds.n_frames]
@@ -319,7 +360,7 @@ def render_frames(clouds: RunClouds, frames: Optional[Sequence[int]] = None, bac
         raise ValueError(f"frames {bad} out of range 0..{clouds.n_frames - 1}")
     if backend not in ("auto", "open3d", "matplotlib"):
         raise ValueError(f"backend must be 'auto', 'open3d' or 'matplotlib', got {backend!r}")
-    if backend in ("auto", "open3d") and open3d_offscreen_available():
+    if backend == "open3d" and open3d_offscreen_available():
         try:
             return _render_open3d(clouds, frames, size, elev, azim, point_size), "open3d"
         except Exception as err:  # noqa: BLE001 - fall back below
@@ -327,7 +368,8 @@ def render_frames(clouds: RunClouds, frames: Optional[Sequence[int]] = None, bac
                 raise
             log.info("open3d offscreen rendering failed (%s); using matplotlib", err)
     elif backend == "open3d":
-        raise RuntimeError("open3d's offscreen renderer does not work on this machine (no EGL/Vulkan); use backend='matplotlib'")
+        raise RuntimeError("open3d's offscreen renderer does not work on this machine (open3d missing, or no EGL/Vulkan); "
+                           "use backend='matplotlib'")
     return _render_matplotlib(clouds, frames, size, elev, azim, point_size), "matplotlib"
 
 
@@ -387,60 +429,19 @@ def write_views(run_dir: str | Path, out_dir: Optional[str | Path] = None, frame
     return written
 
 
-def show(run_dir: str | Path, fps: float = 6.0, max_points: Optional[int] = None, device: str = "cpu") -> None:
-    """Play a run's predicted (coloured by error) and ground-truth (grey) particles in an open3d
-    window. Keys: space pause/play, N/P next/previous frame, G toggle the ground truth, Q quit."""
-    o3d = _o3d()
-    if o3d is None:
-        raise RuntimeError("open3d is not importable here; use write_views (offscreen files) instead")
-    if not display_available():
-        raise RuntimeError("no display (DISPLAY/WAYLAND_DISPLAY unset); use write_views (offscreen files) instead")
-    import time
+def show(run_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, max_points: Optional[int] = 20000,
+         device: str = "cpu") -> None:
+    """Serve the run in the browser viewer (:mod:`toolkit.twin.viewer`) until Ctrl-C.
 
-    clouds = load_run_clouds(run_dir, device=device, max_points=max_points)
-    colors, _ = _error_colors(clouds)
-    state = {"t": 0, "playing": True, "truth": clouds.truth is not None, "last": time.time()}
-    pred = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clouds.predicted[0]))
-    pred.colors = o3d.utility.Vector3dVector(colors[0])
-    truth = o3d.geometry.PointCloud()
-    if clouds.truth:
-        truth.points = o3d.utility.Vector3dVector(clouds.truth[0])
-        truth.paint_uniform_color([0.6, 0.6, 0.6])
-    vis = o3d.visualization.VisualizerWithKeyCallback()
-    vis.create_window(window_name=f"projo4d view {clouds.name}", width=1280, height=800)
-    vis.add_geometry(pred)
-    vis.add_geometry(truth)
+    Needs the ``viewer`` extra (viser). Prints the address to open.
+    """
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        from toolkit.errors import UserError
 
-    def update(v) -> bool:
-        t = state["t"]
-        pred.points = o3d.utility.Vector3dVector(clouds.predicted[t])
-        pred.colors = o3d.utility.Vector3dVector(colors[t])
-        if clouds.truth:
-            truth.points = o3d.utility.Vector3dVector(clouds.truth[t] if state["truth"] else np.zeros((0, 3)))
-            truth.paint_uniform_color([0.6, 0.6, 0.6])
-        v.update_geometry(pred)
-        v.update_geometry(truth)
-        print(f"\r{_caption(clouds, t)}   ", end="", flush=True)
-        return True
+        raise UserError("the browser viewer needs viser: pip install 'projo4d[viewer]'; or write files with "
+                           "`projo4d view RUN --offscreen`") from None
+    from toolkit.twin.viewer import serve_run
 
-    def tick(v) -> bool:
-        if state["playing"] and time.time() - state["last"] >= 1.0 / fps:
-            state["last"] = time.time()
-            state["t"] = (state["t"] + 1) % clouds.n_frames
-            return update(v)
-        return False
-
-    def key(fn):
-        def cb(v):
-            fn()
-            return update(v)
-        return cb
-
-    vis.register_animation_callback(tick)
-    vis.register_key_callback(ord(" "), key(lambda: state.update(playing=not state["playing"])))
-    vis.register_key_callback(ord("N"), key(lambda: state.update(t=(state["t"] + 1) % clouds.n_frames, playing=False)))
-    vis.register_key_callback(ord("P"), key(lambda: state.update(t=(state["t"] - 1) % clouds.n_frames, playing=False)))
-    vis.register_key_callback(ord("G"), key(lambda: state.update(truth=not state["truth"])))
-    vis.run()
-    vis.destroy_window()
-    print()
+    serve_run(run_dir, host=host, port=port, max_points=max_points, device=device, block=True)

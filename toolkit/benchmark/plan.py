@@ -398,8 +398,10 @@ def camera_subset(count: int, n_cameras: int) -> Union[str, list[int]]:
 
 # ------------------------------------------------------------------------------------ settings
 def configs_dir() -> Path:
-    """The repository's ``configs/`` folder."""
-    return Path(__file__).resolve().parents[2] / "configs"
+    """The shipped ``configs/`` folder (a checkout's, or the wheel's ``toolkit/configs``)."""
+    from toolkit.resources import configs_dir as _configs_dir
+
+    return _configs_dir()
 
 
 def _load_config(path: Path) -> dict:

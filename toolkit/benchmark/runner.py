@@ -10,7 +10,9 @@ scene. Nothing is data-parallel: no gradient is ever averaged across scenes.
   Ray cluster of several (``ray start --head`` / ``ray start --address ...`` on the others,
   then ``--executor ray --ray-address auto``). Ray is optional (``pip install projo4d[ray]``);
   every machine must see the benchmark folder and the scenes at the same paths (a shared file
-  system). It has not been tested on a multi-machine cluster here.
+  system). A task whose worker process or machine dies is rerun (``max_retries``, default 2) and
+  resumes from the job's checkpoints. The test suite runs it on a local Ray cluster (with logical
+  GPUs and a killed task); it has not been tested on a multi-machine cluster here.
 * :class:`InlineExecutor`: one job at a time in this process (debugging, tutorials).
 
 Each job's CPU thread pools are sized for its share of the machine (issue #25): the local
@@ -294,12 +296,16 @@ class RayExecutor:
             without GPUs 1.
         fn: ``"module:function"`` run on each job dict.
         jobs_per_gpu: tasks sharing one GPU (when ``gpus_per_job`` is ``None``).
+        max_retries: times Ray reruns a task whose worker process or node died (killed, out of
+            memory, a machine lost); the rerun resumes from the job's checkpoints. A job that
+            raises is a failure, not retried; a task cancelled at the time limit is not retried.
     """
 
     name = "ray"
 
     def __init__(self, address: Optional[str] = None, gpus_per_job: Optional[float] = None,
-                 cpus_per_job: Optional[float] = None, fn: str = JOB_FUNCTION, jobs_per_gpu: int = 1):
+                 cpus_per_job: Optional[float] = None, fn: str = JOB_FUNCTION, jobs_per_gpu: int = 1,
+                 max_retries: int = 2):
         try:
             import ray
         except ImportError:
@@ -320,7 +326,10 @@ class RayExecutor:
         self.capacity = max(1, int(gpus / gpus_per_job) if gpus_per_job else int(cpus / cpus_per_job))
         self.threads = max(1, int(cpus_per_job))
         self._fn = fn
-        self._remote = ray.remote(num_gpus=gpus_per_job, num_cpus=cpus_per_job, max_retries=0)(_ray_call)
+        self.max_retries = int(max_retries)
+        self._interrupted: set = set()  # handles cancelled by interrupt(): "interrupted", not "failed"
+        self._remote = ray.remote(num_gpus=gpus_per_job, num_cpus=cpus_per_job, max_retries=self.max_retries,
+                                  retry_exceptions=False)(_ray_call)
 
     def submit(self, job: dict):
         return self._remote.remote(self._fn, job, self.threads)
@@ -332,11 +341,13 @@ class RayExecutor:
     def result(self, handle, job: dict) -> dict:
         try:
             return self._ray.get(handle)
-        except Exception as exc:  # noqa: BLE001 - cancelled or crashed task
-            return {"id": job["id"], "status": "interrupted", "error": f"{type(exc).__name__}: {exc}"}
+        except Exception as exc:  # noqa: BLE001 - cancelled, or crashed after max_retries reruns
+            status = "interrupted" if handle in self._interrupted else "failed"
+            return {"id": job["id"], "status": status, "error": f"{type(exc).__name__}: {exc}"}
 
     def interrupt(self, handles: Sequence, grace: float) -> None:
         """Ask every running task to stop (KeyboardInterrupt in the task), then force-cancel."""
+        self._interrupted.update(handles)
         for h in handles:
             self._ray.cancel(h, force=False)
         ready, rest = self._ray.wait(list(handles), num_returns=len(handles), timeout=grace)

@@ -1,16 +1,17 @@
 """``projo4d view RUN_DIR``: predicted and ground-truth particles over time.
 
-With a display, an open3d window plays the sequence (space: pause/play, N/P: step, G: toggle
-the ground truth). Without one (or with ``--offscreen``), every frame is rendered to
-``RUN_DIR/view/`` (or ``--out``): ``frame_XXX.png`` for a few frames, ``strip.png`` and
-``particles.mp4``, with open3d's offscreen renderer where it works and a matplotlib scatter
-render otherwise (``--backend`` picks one).
+By default every frame is rendered to ``RUN_DIR/view/`` (or ``--out``): ``frame_XXX.png`` for a
+few frames, ``strip.png`` and ``particles.mp4`` (matplotlib: truth blue, prediction coloured by its
+distance to the truth with a colour bar in cm, axes in metres, y up, captions above the plots).
+``--browser`` serves the interactive viewer instead (viser; the ``viewer`` extra): open the printed
+address for a time slider, prediction against truth, the cameras and a re-simulation playground.
 
 Examples::
 
-    projo4d view runs/torus
-    projo4d view runs/torus --offscreen --frames 0 7 9 --backend matplotlib
-    projo4d view bench/s0/runs/sand/000/cams3/progressive --offscreen --export-ply
+    projo4d view runs/torus --browser            # then open http://127.0.0.1:8080
+    projo4d view runs/torus --browser --host 0.0.0.0 --port 8899
+    projo4d view runs/torus --frames 0 7 9
+    projo4d view bench/s0/runs/sand/000/cams3/progressive --export-ply
 """
 
 from __future__ import annotations
@@ -33,12 +34,15 @@ def _size(text: str) -> tuple[int, int]:
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", metavar="RUN_DIR", type=Path, help="a run folder (projo4d run / benchmark)")
-    parser.add_argument("--offscreen", action="store_true", help="write PNG/MP4 files even where a display exists")
+    parser.add_argument("--browser", action="store_true", help="serve the interactive browser viewer (until Ctrl-C)")
+    parser.add_argument("--host", default="127.0.0.1", help="--browser: address to listen on (0.0.0.0: every interface)")
+    parser.add_argument("--port", type=int, default=8080, help="--browser: port (default 8080)")
+    parser.add_argument("--offscreen", action="store_true", help="write PNG/MP4 files (the default; kept for old scripts)")
     parser.add_argument("--out", type=Path, help="folder of the files (default RUN_DIR/view)")
     parser.add_argument("--frames", nargs="+", type=int, help="frames saved as PNG (default: first, last fitted, last)")
     parser.add_argument("--format", nargs="+", choices=["png", "mp4"], default=["png", "mp4"], dest="formats")
     parser.add_argument("--backend", choices=["auto", "open3d", "matplotlib"], default="auto",
-                        help="offscreen renderer (auto: open3d where it works, else matplotlib)")
+                        help="file renderer (auto = matplotlib; open3d needs the optional open3d extra and EGL)")
     parser.add_argument("--size", type=_size, default=(960, 480), help="image size WIDTHxHEIGHT (default 960x480)")
     parser.add_argument("--fps", type=float, default=6.0)
     parser.add_argument("--max-points", type=int, default=20000, help="points drawn per cloud (default 20000)")
@@ -49,16 +53,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from toolkit.viewer import display_available, show, write_views
+    from toolkit.viewer import show, write_views
 
     if not args.run_dir.is_dir():
         raise SystemExit(f"projo4d view: {args.run_dir} is not a folder")
-    if not args.offscreen and display_available():
-        try:
-            show(args.run_dir, fps=args.fps, max_points=args.max_points, device=args.device)
-            return 0
-        except Exception as err:  # noqa: BLE001 - no usable window: write files instead
-            print(f"projo4d view: no interactive window ({err}); writing files instead")
+    if args.browser:
+        show(args.run_dir, host=args.host, port=args.port, max_points=args.max_points, device=args.device)
+        return 0
     files = write_views(args.run_dir, args.out, frames=args.frames, formats=args.formats, backend=args.backend,
                         size=args.size, fps=args.fps, max_points=args.max_points, export_ply=args.export_ply,
                         elev=args.elev, azim=args.azim, device=args.device)

@@ -73,19 +73,46 @@ class CurriculumCheckpoint(Callback):
 
 
 class EstimateWriter(Callback):
-    """Write ``estimate.json`` (parameters, v0, curriculum, errors when known) and ``history.json``
-    (one record per iteration) to ``<trainer.default_root_dir>`` when training ends."""
+    """Write ``estimate.json`` (parameters, v0, curriculum, errors when known, and the uncertainty:
+    90 % intervals and identifiability labels, :mod:`toolkit.physics.uncertainty`) and
+    ``history.json`` (one record per iteration) to ``<trainer.default_root_dir>`` when training ends.
+
+    With ``uncertainty`` (default) the Laplace posterior is computed first, after a finished
+    curriculum only; its MAP step may move undetermined parameters back toward their initial guess,
+    so ``last.ckpt`` of a :class:`CurriculumCheckpoint` is written again afterwards.
+    """
+
+    def __init__(self, uncertainty: bool = True):
+        super().__init__()
+        self.uncertainty = uncertainty
 
     def on_train_end(self, trainer: pl.Trainer, pl_module) -> None:
         out = Path(trainer.default_root_dir)
         out.mkdir(parents=True, exist_ok=True)
         key = pl_module.material.registry_name or None
+        if self.uncertainty and pl_module.curriculum_step >= pl_module.total_iterations and hasattr(pl_module, "uncertainty"):
+            _add_uncertainty(trainer, pl_module)
         est = pl_module.estimate()
+        est["uncertainty"] = getattr(pl_module, "uncertainty_result", None)
         est["iterations"] = pl_module.curriculum_step
         est["curriculum"] = pl_module.curriculum.describe(key)
         est["errors"] = pl_module.parameter_errors()
         write_json(out / "history.json", pl_module.history, indent=None)
         write_json(out / "estimate.json", est)
+
+
+def _add_uncertainty(trainer: pl.Trainer, module) -> None:
+    """``module.uncertainty()``, then ``last.ckpt`` again; a failure is logged, never fatal."""
+    import logging
+
+    try:
+        module.uncertainty()
+    except Exception as err:  # the estimate is still worth writing
+        logging.getLogger(__name__).warning("uncertainty of the estimate could not be computed: %s", err)
+        return
+    for cb in getattr(trainer, "callbacks", None) or []:  # (benchmark jobs pass a bare namespace)
+        if isinstance(cb, CurriculumCheckpoint) and cb.dirpath is not None and (cb.dirpath / "last.ckpt").is_file():
+            save_checkpoint(trainer, cb.dirpath / "last.ckpt")
 
 
 def _physics_position(trainer, module) -> tuple[str, int, int]:

@@ -26,6 +26,7 @@ checkpoints): under manual optimization Lightning's ``global_step`` counts optim
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from typing import Any, Optional, Sequence, Union
@@ -43,6 +44,7 @@ from toolkit.metrics.geometry import chamfer_loss
 from toolkit.data.exclusion import EXCLUSION_META_KEY, apply_keep
 from toolkit.metrics.image import ssim_torch
 from toolkit.mpm import MPMSimulator, SimConfig
+from toolkit.physics.contact import ground_contact_normal, project_off_ground
 from toolkit.physics.embedding import carry, embed
 from toolkit.physics.inputs import PhysicsInput
 
@@ -195,6 +197,11 @@ class InversePhysicsModule(pl.LightningModule):
             self.sh = None
         # ---------------------------------------------------------- S: initial state
         self.v0 = nn.Parameter(torch.tensor(v0_init if v0_init is not None else [0.0, 0.0, 0.0], dtype=torch.float32))
+        # resting on a sticky/slip ground at frame 0: v0 has no normal component (issue #24, toolkit.physics.contact)
+        self.contact_normal = ground_contact_normal(inp.particles, cfg, inp.surfaces)
+        project_off_ground(self.v0.data, self.contact_normal)
+        #: the Laplace posterior of the last :meth:`uncertainty` call (a dict; kept in checkpoints)
+        self.uncertainty_result: Optional[dict] = None
         gravity = torch.tensor(list(cfg.gravity), dtype=torch.float32)
         if optimize_gravity:
             self.gravity = nn.Parameter(gravity)
@@ -268,6 +275,15 @@ class InversePhysicsModule(pl.LightningModule):
         return {"material": self.material.registry_name, "params": params, "v0": self.v0.detach().cpu().tolist(),
                 "gravity": self.gravity.detach().cpu().tolist(), "effects": eff}
 
+    def uncertainty(self, **options) -> dict:
+        """90 % intervals and identifiability labels of the estimate (:mod:`toolkit.physics.uncertainty`);
+        ``options`` go to :func:`~toolkit.physics.uncertainty.estimate_uncertainty`. Cached: the
+        result is kept in :attr:`uncertainty_result` and in checkpoints."""
+        from toolkit.physics.uncertainty import estimate_uncertainty
+
+        self.uncertainty_result = estimate_uncertainty(self, **options).to_dict()
+        return self.uncertainty_result
+
     def gaussians_at(self, positions: torch.Tensor, x0: torch.Tensor, appearance_grad: bool = True) -> list[Gaussians]:
         """Gaussians for each frame of ``positions`` (F, N, 3) simulated from ``x0``."""
         means0 = self.gaussian_means0 + self.gaussian_offset
@@ -328,6 +344,7 @@ class InversePhysicsModule(pl.LightningModule):
             "history": self.history,
             "grid": None if self._sim is None or self._sim.grid is None else self._sim.grid.__dict__,
             "substeps_floor": self._restored_substeps_floor if self._sim is None else self._sim.substeps_floor,
+            "uncertainty": self.uncertainty_result,
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
@@ -336,6 +353,7 @@ class InversePhysicsModule(pl.LightningModule):
         self.history = list(state.get("history", []))
         self._restored_grid = state.get("grid")
         self._restored_substeps_floor = int(state.get("substeps_floor", 0))
+        self.uncertainty_result = state.get("uncertainty")
         self._sim = None
         saved = state.get("curriculum")
         unnamed = lambda stages: [{k: v for k, v in d.items() if k != "name"} for d in stages]  # noqa: E731
@@ -364,6 +382,7 @@ class InversePhysicsModule(pl.LightningModule):
                 for pg in opts[gi].param_groups:
                     pg["lr"] = pg["base_lr"] * factor
                 opts[gi].step()
+            project_off_ground(self.v0.data, self.contact_normal)
         if stage.groups & {"X", "S", "M"}:
             self._cached_positions = None
         self.curriculum_step += 1
@@ -383,8 +402,20 @@ class InversePhysicsModule(pl.LightningModule):
         self._note_substeps(out.substeps)
         return x0, out.positions
 
+    @contextlib.contextmanager
+    def substeps_unlogged(self):
+        """Rollouts inside neither log nor record substep changes (probes around the estimate, such
+        as the uncertainty's perturbed parameters, are not steps of the fit)."""
+        previous, self._log_substeps = getattr(self, "_log_substeps", True), False
+        try:
+            yield
+        finally:
+            self._log_substeps = previous
+
     def _note_substeps(self, substeps: int) -> None:
         """Log a line when the substeps per frame change (a re-plan or a dt halving)."""
+        if not getattr(self, "_log_substeps", True):
+            return
         if substeps != self.substeps:
             plan = self.simulator.last_plan
             why = "" if plan is None else (

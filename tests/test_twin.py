@@ -1,0 +1,158 @@
+"""Digital twins: export of a fitted run, the twin file, re-simulation under new conditions, rendering."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tests.physics_fixtures import tiny_scene
+from toolkit.cli import main
+
+
+@pytest.fixture(scope="module")
+def fitted_run(tmp_path_factory):
+    """A tiny oracle run (144 particles, 6 frames at 32 px, 8 iterations), fitted once for the module."""
+    scene = tiny_scene(tmp_path_factory.mktemp("twin_scene"))
+    out = tmp_path_factory.mktemp("twin_run") / "run"
+    args = ["run", str(scene), "--out", str(out), "--geometry", "oracle", "--config", "configs/demo.yaml",
+            "--sim", '{"dx": 0.04, "substeps": 30}', "--curriculum", "XAS:4@3,XASM:4", "--device", "cpu"]
+    assert main(args) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(fitted_run):
+    from toolkit.twin.export import export_run
+
+    return export_run(fitted_run)
+
+
+def test_export_writes_refined_gaussians_sequence_and_twin(fitted_run, exported):
+    from toolkit.scene.export import load_ply
+    from toolkit.data.ply import read_ply_points
+    from toolkit.pipeline import load_fitted_module
+    from toolkit.twin import DigitalTwin
+
+    twin = DigitalTwin.load(exported["twin"])
+    module = load_fitted_module(fitted_run)
+    # the physics-refined Gaussians (X and A groups), not stage 0's: means0 + fitted offset
+    g = load_ply(exported["gaussians"])
+    refined = (module.gaussian_means0 + module.gaussian_offset).detach().numpy()
+    assert np.array_equal(g.means.numpy(), refined)
+    assert g.sh.shape[1] == 16  # INRIA layout: degree-3 SH, 45 f_rest values
+    assert np.allclose(0.28209479 * g.sh[:, 0].numpy() + 0.5, module.colors.detach().numpy(), atol=1e-5)
+    # the twin holds what the estimate says
+    est = json.loads((fitted_run / "physics" / "estimate.json").read_text())
+    for k, v in twin.params.items():
+        assert v == pytest.approx(est["params"][k] if "params" in est else est[k], rel=1e-6)
+    assert twin.meta["format"] == "projo4d-twin" and twin.meta["version"] == 1
+    assert twin.meta["units"]["length"] == "m" and twin.meta["world"]["ground_height"] == 0.0
+    assert twin.meta["sim"]["dx"] == 0.04 and twin.meta["sim"]["frame_dt"] == pytest.approx(1 / 24, rel=1e-6)
+    assert np.array_equal(twin.arrays["particles"], (module.particles0 + module.particle_offset).detach().numpy())
+    # per-frame sequence: the run's prediction
+    pred = np.load(fitted_run / "evaluation" / "prediction.npz")
+    T = pred["positions"].shape[0]
+    assert exported["sequence_files"] == 2 * T
+    for t in (0, T - 1):
+        assert np.array_equal(read_ply_points(exported["sequence"] / f"particles_{t:03d}.ply"), pred["positions"][t])
+        assert np.array_equal(load_ply(exported["sequence"] / f"gaussians_{t:03d}.ply").means.numpy(), pred["means"][t])
+    schema = json.loads((exported["twin"].parent / "twin.schema.json").read_text())
+    assert set(schema["required"]) <= set(twin.meta)
+
+
+def test_twin_round_trip_reproduces_the_prediction(fitted_run, exported, device):
+    """Simulating the twin with the fitted v0 gives the run's (CPU) prediction: bit for bit on CPU,
+    to float32 round-off on CUDA (atomics); rendering works on the same device."""
+    from toolkit.twin import DigitalTwin, orbit_cameras, render_trajectory, simulate_twin
+
+    twin = DigitalTwin.load(exported["twin"])
+    traj = simulate_twin(twin, device=device)
+    pred = np.load(fitted_run / "evaluation" / "prediction.npz")
+    assert traj.positions.shape == pred["positions"].shape
+    tol = 0.0 if device == "cpu" else 1e-5  # metres
+    np.testing.assert_allclose(traj.positions.numpy(), pred["positions"], rtol=0, atol=tol)
+    np.testing.assert_allclose(traj.means.numpy(), pred["means"], rtol=0, atol=tol)
+    frames = render_trajectory(twin, traj, orbit_cameras(twin, n=1, width=32, height=32), device=device)
+    assert frames.shape == (len(pred["positions"]), 1, 32, 32, 3) and frames[:, :, 12:20, 12:20].mean() > 0.05
+
+
+def test_new_throw_follows_the_ballistic_path(exported):
+    """An elastic body in free flight: its centre of mass moves as x0 + v0 t + g t^2 / 2, whatever E is."""
+    from toolkit.twin import DigitalTwin, simulate_twin
+
+    twin = DigitalTwin.load(exported["twin"])
+    v0 = np.array([-0.4, 1.0, 0.2])
+    g = np.array(twin.meta["gravity"])
+    for E in (1e4, 1e5):
+        traj = simulate_twin(twin, v0=v0.tolist(), params={"E": E}, n_frames=6)
+        assert traj.positions.shape == (7, len(twin.arrays["particles"]), 3)
+        c = traj.positions.numpy().astype(np.float64).mean(1)
+        t = traj.times[:, None]
+        assert traj.positions.numpy()[:, :, 1].min() > 0.04  # stays clear of the ground (contact starts at frame 7)
+        np.testing.assert_allclose(c, c[0] + v0 * t + 0.5 * g * t ** 2, atol=2e-3)
+        assert traj.conditions["params"]["E"] == pytest.approx(E, rel=1e-6)
+    with pytest.raises(ValueError, match=r"params \['G'\] are not parameters of 'neo_hookean'"):
+        simulate_twin(twin, params={"G": 1.0})
+    with pytest.raises(ValueError, match="v0 must be 3 finite numbers"):
+        simulate_twin(twin, v0=[1.0, 2.0])
+
+
+def test_twin_file_is_versioned_and_checked(exported, tmp_path):
+    from toolkit.twin import DigitalTwin, TwinFormatError
+
+    twin = DigitalTwin.load(exported["twin"])
+    newer = DigitalTwin(meta={**twin.meta, "version": 99}, arrays=twin.arrays)
+    with pytest.raises(TwinFormatError, match="version 99 is newer than this projo4d reads"):
+        newer.save(tmp_path / "newer.npz")
+    broken = DigitalTwin(meta=twin.meta, arrays={k: v for k, v in twin.arrays.items() if k != "embed_index"})
+    with pytest.raises(TwinFormatError, match="the array 'embed_index' is missing"):
+        broken.validate("x.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(TwinFormatError, match="junk.npz: not a readable .npz twin file"):
+        DigitalTwin.load(tmp_path / "junk.npz")
+    again = DigitalTwin.load(twin.save(tmp_path / "copy.npz"))
+    assert again.meta == twin.meta and all(np.array_equal(again.arrays[k], v) for k, v in twin.arrays.items())
+
+
+def test_orbit_cameras_look_at_the_object(exported):
+    from toolkit.twin import DigitalTwin, orbit_cameras
+
+    twin = DigitalTwin.load(exported["twin"])
+    cams = orbit_cameras(twin, n=4, width=48, height=32)
+    centre = torch.as_tensor(twin.arrays["particles"].mean(0), dtype=torch.float32)
+    uv, depth = cams.project(centre.expand(4, 1, 3))
+    np.testing.assert_allclose(uv.reshape(4, 2).numpy(), np.tile([24.0, 16.0], (4, 1)), atol=1e-3)
+    assert (depth > 0).all()
+
+
+def test_simulate_command_renders_a_new_throw(exported, tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", str(exported["twin"]), "--out", str(out), "--v0", "-0.3,0.8,0", "--params", '{"E": 5e4}',
+                 "--frames", "3", "--orbit", "2", "--size", "40", "32"]) == 0
+    printed = capsys.readouterr().out
+    assert "simulated 3 frames" in printed and "E = 5e+04" in printed
+    d = np.load(out / "particles.npz")
+    assert d["positions"].shape[0] == 4 and np.allclose(d["times"], np.arange(4) / 24, atol=1e-6)
+    import imageio.v3 as iio
+
+    video = next(out.glob("video.*"))
+    frames = iio.imread(video)
+    assert frames.shape[0] == 4 and frames.shape[2] == 80  # two 40 px cameras side by side, caption band below
+    assert frames.shape[1] >= 32 + 14 - 1
+    assert frames[:, :32].max() > 40  # the object is drawn
+    with pytest.raises(SystemExit, match="not parameters of") as exc:
+        main(["simulate", str(exported["twin"]), "--params", '{"G": 1}', "--no-video"])
+    assert exc.value.code == 2
+
+
+def test_export_command(fitted_run, tmp_path, capsys):
+    assert main(["export", str(fitted_run), "--out", str(tmp_path / "e"), "--no-sequence"]) == 0
+    printed = capsys.readouterr().out
+    assert "twin:" in printed and "neo_hookean" in printed
+    assert (tmp_path / "e" / "twin.npz").is_file() and not (tmp_path / "e" / "sequence").exists()
+    with pytest.raises(SystemExit, match="holds no fitted model") as exc:
+        main(["export", str(tmp_path)])
+    assert exc.value.code == 2

@@ -1,0 +1,31 @@
+"""Tiny generated scenes for the uncertainty tests: a frictionless slide and a toss with impact."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from toolkit.mpm import SimConfig
+
+#: the slide: a soft box set down on a slip ground, moving horizontally (issue #24's puck, CPU-sized)
+SLIDE_TRUTH = {"E": 3e4, "nu": 0.3}
+SLIDE_V0 = (0.9, 0.0, 0.2)
+SLIDE_SIZE = {"size_x": 0.12, "size_y": 0.08, "size_z": 0.1}
+
+
+def slide_scene(root: Path, n_frames: int = 6) -> Path:
+    """A box resting on a slip ground (its lowest point one truth grid cell, 2 cm, above it: touching the ground nodes), sliding at ``SLIDE_V0``; 10 cameras, 32 px."""
+    from toolkit.synthetic import SceneSpec, generate_scene
+
+    if (root / "ground_truth.json").exists():
+        return root
+    spec = SceneSpec.preset(
+        "small", shape="box", shape_size=SLIDE_SIZE, material="neo_hookean", params=SLIDE_TRUTH, v0=SLIDE_V0,
+        position=(-0.08, SLIDE_SIZE["size_y"] / 2 + 0.0201, 0.0), n_frames=n_frames, n_train_frames=n_frames - 1, width=32,
+        height=32, dx=0.02, particle_spacing=0.01, substeps=80, supersample=1, ground_plane=False, boundary="slip",
+    )
+    generate_scene(spec, root)
+    return root
+
+
+def slide_sim() -> SimConfig:
+    return SimConfig(dx=0.04, substeps=30, auto_dt_halving=True, boundary="slip")

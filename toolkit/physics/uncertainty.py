@@ -1,0 +1,448 @@
+"""How sure is the estimate: a Laplace (Gauss-Newton) posterior, 90 % intervals and identifiability labels.
+
+After a fit, every physics parameter the fit optimized (material parameters in their raw space:
+log10 E, tanh-bounded nu, ...; the components of v0 in m/s; gravity and effect strengths when they
+are optimized) gets
+
+* a 90 % interval (``low``, ``high``, physical units), and
+* a label: ``determined``, ``weakly determined`` or ``not determined by this clip``.
+
+Method (issue #24; chosen over profile likelihoods, which need refits, and multi-start spread,
+which measures the optimizer rather than the data):
+
+1. The geometric term of the fit, ``lambda_geo * sum_f chamfer(simulated surface_f, target_f) / F``
+   over the fitted frames after frame 0, is a sum of squared residuals once each point's nearest
+   neighbour is fixed (:class:`_Residuals`; a test checks it against ``chamfer_loss``). Its
+   Jacobian ``J`` with respect to the K parameters (raw space) is taken by central finite
+   differences through the simulator (forward rollouts only; the substeps are pinned to the finest
+   plan any perturbed state needs, so a re-plan does not show up as a jump).
+2. Re-matching nearest neighbours lets points slide along the surface, so the real chamfer loss is
+   flatter than the fixed matches say, and bumpy below the point spacing. Each column of ``J`` is
+   scaled to the curvature of the re-matched loss measured over a step that moves the surface by
+   about one point spacing (:data:`WIDE_STEP_MAX` caps it).
+3. Residual noise comes from the fit's own misfit, ``s^2 = SSR / (n_eff - K)``: the residuals of
+   one frame are strongly correlated, so each frame counts as :data:`CLUSTERS_PER_FRAME`
+   independent observations (calibrated on ``benchmarks/uncertainty.py``), not thousands.
+4. With a weak Gaussian prior on the raw parameters centred on the initial guess (:data:`PRIOR_STD`),
+   the posterior covariance is ``C = (J^T J / s^2 + diag(1 / prior_std^2))^-1``; the interval is
+   ``raw +- t(0.5 + level / 2, n_eff - K) sqrt(C_kk)`` mapped to physical units, and the label comes
+   from ``ratio = sqrt(C_kk) / prior_std`` (:func:`label_for`).
+5. A nonlinear parameter (log10, tanh) may be bounded on one side only (a soft body sags visibly,
+   any stiff one looks the same): the ends of its interval are simulated, and a side where the loss
+   rises less than :data:`OPEN_SIDE_FRACTION` of the prediction is open: the interval extends to
+   the prior there and the label is at best ``weakly determined``.
+6. One MAP Gauss-Newton step with the prior (``prior_step``) moves parameters the data do not
+   constrain back toward their initial guess instead of leaving them wherever the optimizer
+   stopped; it is taken only if it lowers the MAP objective (re-matched), halving it up to three
+   times.
+
+Cost: 4K + 1 rollouts for steps 1-2, 2 per nonlinear parameter for step 5 and at most 5 for step
+6, all forward (a fit iteration is a forward and a backward pass, 4.5-6x a forward): 16-22
+rollouts for E and v0, 5-7 % of the fit in the benchmark. The initial velocity's component along
+the ground normal of a body resting on a non-separating ground is fixed at 0
+(:mod:`toolkit.physics.contact`) and reported with a note.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+__all__ = ["LABELS", "DETERMINED_BELOW", "NOT_DETERMINED_ABOVE", "PRIOR_STD", "CLUSTERS_PER_FRAME", "ParameterUncertainty",
+           "Uncertainty", "estimate_uncertainty", "label_for"]
+
+#: the three identifiability labels
+LABELS = ("determined", "weakly determined", "not determined by this clip")
+#: posterior std / prior std below this: determined (the data narrow the prior at least 5x). Chosen
+#: with :data:`NOT_DETERMINED_ABOVE` on ``benchmarks/uncertainty.py``: E of a toss with an impact has
+#: ratios 0.06-0.15 there (determined), E of a box sliding on a frictionless ground or of a lob that
+#: lands after the fitted frames 0.5-1.0 (not determined).
+DETERMINED_BELOW = 0.2
+#: posterior std / prior std above this: not determined (the 90 % interval is most of the prior's)
+NOT_DETERMINED_ABOVE = 0.45
+#: prior std in the raw (optimized) space, by material transform: 1 decade for log10 parameters,
+#: 0.25 for tanh-bounded ones (nu: a quarter of its range); linear ones use max(|initial|, 1)
+PRIOR_STD = {"log10": 1.0, "tanh": 0.25}
+#: prior std of each v0 component (m/s) and gravity component (m/s^2)
+V0_PRIOR_STD = 1.0
+GRAVITY_PRIOR_STD = 1.0
+#: independent observations each fitted frame is worth (its residuals are correlated): calibrated on
+#: ``benchmarks/uncertainty.py`` (24 CPU-sized scenes), where 3 gave 100 % coverage of the 90 %
+#: intervals (all too wide, the truth within 0.36 half-widths in 90 % of the cases) and 11 gives
+#: about 90 %; validated on 24 other scenes (docs/tutorials/uncertainty.md)
+CLUSTERS_PER_FRAME = 11
+#: an interval side where the simulated rise of the data term is below this fraction of the
+#: linearized prediction is open (the data do not bound the parameter there)
+OPEN_SIDE_FRACTION = 0.25
+#: finite-difference steps in the raw space
+FD_STEP = {"log10": 0.02, "tanh": 0.01, "linear": 0.01}
+#: largest step of the curvature measurement (which aims at moving the surface by one point spacing)
+WIDE_STEP_MAX = {"log10": 0.5, "tanh": 0.3, "linear": 0.5}
+
+
+def label_for(ratio: float) -> str:
+    """The label of a posterior/prior std ``ratio`` (see :data:`DETERMINED_BELOW`, :data:`NOT_DETERMINED_ABOVE`)."""
+    if ratio < DETERMINED_BELOW:
+        return LABELS[0]
+    if ratio <= NOT_DETERMINED_ABOVE:
+        return LABELS[1]
+    return LABELS[2]
+
+
+@dataclass
+class ParameterUncertainty:
+    """One parameter's estimate, interval and label.
+
+    Attributes:
+        name: ``E``, ``nu``, ..., ``v0_x``, ``v0_y``, ``v0_z``, ``gravity_x``, ..., ``effect.param``.
+        value: the estimate, physical units.
+        low, high: the interval at the report's ``level``, physical units.
+        label: one of :data:`LABELS`.
+        ratio: posterior std / prior std in the raw space (0: fixed by data, 1: the prior alone).
+        space: where the Gaussian lives: ``log10``, ``tanh`` or ``linear``.
+        std: posterior std in that space.
+        prior: prior mean (the initial guess), physical units.
+        note: why a parameter is fixed (e.g. ground contact), else empty.
+    """
+
+    name: str
+    value: float
+    low: float
+    high: float
+    label: str
+    ratio: float
+    space: str
+    std: float
+    prior: float
+    note: str = ""
+
+
+@dataclass
+class Uncertainty:
+    """All parameters' uncertainty plus how it was computed."""
+
+    parameters: list[ParameterUncertainty]
+    level: float
+    noise_std: float
+    dof: int
+    frames: int
+    rollouts: int
+    seconds: float
+    prior_step: dict = field(default_factory=dict)
+
+    def by_name(self) -> dict[str, ParameterUncertainty]:
+        return {p.name: p for p in self.parameters}
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["parameters"] = {p["name"]: p for p in d["parameters"]}
+        return d
+
+
+@dataclass
+class _Param:
+    name: str
+    space: str
+    prior_mean: float
+    prior_std: float
+    get: Callable[[], float]
+    set: Callable[[float], None]
+    physical: Callable[[float], float]
+
+
+def _parameters(module) -> list[_Param]:
+    """The fitted physics parameters as scalar handles in their raw space."""
+    out: list[_Param] = []
+    mat = module.material
+    for i, n in enumerate(mat.param_names):
+        if n not in module.material_raw:
+            continue
+        p = mat.param(n)
+        t = module.material_raw[n]
+        mean = float(module.material_raw_fixed[i])
+        std = PRIOR_STD.get(p.transform) or max(abs(mean), 1.0)
+        out.append(_Param(n, p.transform, mean, std, (lambda t=t: float(t.detach())),
+                          (lambda v, t=t: t.data.fill_(v)), (lambda v, p=p: float(p.to_physical(torch.tensor(v))))))
+    v0_init = (module.hparams.get("v0_init") or [0.0, 0.0, 0.0])
+    normal = getattr(module, "contact_normal", None)
+    for i, c in enumerate("xyz"):
+        if normal is not None and abs(normal[i]) > 0.5:
+            continue  # fixed at 0 by the ground (reported separately)
+        out.append(_Param(f"v0_{c}", "linear", float(v0_init[i]), V0_PRIOR_STD, (lambda i=i: float(module.v0.detach()[i])),
+                          (lambda v, i=i: module.v0.data.__setitem__(i, v)), float))
+    if module.optimize_gravity:
+        g0 = list(module.sim_config.gravity)
+        for i, c in enumerate("xyz"):
+            out.append(_Param(f"gravity_{c}", "linear", float(g0[i]), GRAVITY_PRIOR_STD, (lambda i=i: float(module.gravity.detach()[i])),
+                              (lambda v, i=i: module.gravity.data.__setitem__(i, v)), float))
+    if module.effect_names:
+        init = module.simulator.pack_effects(module.effect_init).cpu().tolist()
+        for i, n in enumerate(module.effect_names):
+            out.append(_Param(str(n), "linear", float(init[i]), max(abs(init[i]), 1.0), (lambda i=i: float(module.effect_params.detach()[i])),
+                              (lambda v, i=i: module.effect_params.data.__setitem__(i, v)), float))
+    return out
+
+
+def _frames(module) -> list[int]:
+    """Fitted frames after the first whose target surface is not empty."""
+    return [f for f in range(1, module.input.n_train) if len(module.input.surfaces[f])]
+
+
+def _simulate(module, n: int) -> torch.Tensor:
+    with torch.no_grad(), module.substeps_unlogged():  # probes, not the fit: no substep log lines
+        _, pos = module.simulate(n, frozenset())
+    return pos
+
+
+def _nearest(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Index in ``b`` of each point of ``a``'s nearest neighbour."""
+    return torch.cdist(a.double(), b.double()).argmin(dim=1)
+
+
+class _Residuals:
+    """The geometric loss as a residual vector with nearest neighbours fixed at the base state.
+
+    ``sum(r**2)`` equals ``lambda_geometry * sum_f chamfer(surface_f, target_f) / F`` at the base.
+    """
+
+    def __init__(self, module, frames: list[int], positions: torch.Tensor):
+        self.module, self.frames = module, frames
+        self.targets = [module.input.surfaces[f].to(positions.device).double() for f in frames]
+        self.scale = math.sqrt(module.lambda_geometry / len(frames))
+        self.match = []
+        for f, t in zip(frames, self.targets):
+            s = positions[f][module.surface_index].double()
+            self.match.append((_nearest(s, t), _nearest(t, s)))
+
+    def __call__(self, positions: torch.Tensor) -> torch.Tensor:
+        parts = []
+        for f, t, (st, ts) in zip(self.frames, self.targets, self.match):
+            s = positions[f][self.module.surface_index].double()
+            parts.append((s - t[st]).reshape(-1) / math.sqrt(len(s)))
+            parts.append((t - s[ts]).reshape(-1) / math.sqrt(len(t)))
+        return torch.cat(parts) * self.scale
+
+
+def _geometric_ssr(module, frames: list[int], positions: torch.Tensor) -> float:
+    """The geometric loss with nearest neighbours re-matched (what the fit minimizes)."""
+    r = _Residuals(module, frames, positions)(positions)
+    return float((r ** 2).sum())
+
+
+def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) -> Uncertainty:
+    """Intervals and labels for ``module``'s current estimate (see the module docstring).
+
+    Args:
+        module: a fitted :class:`~toolkit.physics.InversePhysicsModule`.
+        level: coverage of the intervals (0.9: 90 %).
+        prior_step: take one MAP Gauss-Newton step with the prior first (moves parameters the clip
+            does not determine back toward their initial guess); ``False`` only reports.
+
+    Returns:
+        :class:`Uncertainty`; the module's parameters are changed only by an accepted prior step.
+
+    Raises:
+        ValueError: if ``level`` is not in (0, 1) or the clip has no fitted frame after frame 0
+            with a target surface.
+    """
+    from scipy.stats import t as student_t
+
+    if not 0 < level < 1:
+        raise ValueError(f"estimate_uncertainty: level must be in (0, 1), got {level!r}")
+    frames = _frames(module)
+    if not frames:
+        raise ValueError(f"estimate_uncertainty: no fitted frame after frame 0 has a target surface "
+                         f"(n_train = {module.input.n_train}); nothing constrains the physics")
+    start = time.perf_counter()
+    params = _parameters(module)
+    K, n = len(params), max(frames)
+    theta = np.array([p.get() for p in params])
+    steps = np.array([FD_STEP[p.space] for p in params])
+    sim = module.simulator
+    floor = sim.substeps_floor
+    rollouts = 0
+    try:
+        # pin the substeps to the finest plan any perturbed state needs (a re-plan would be a jump)
+        pinned = floor
+        for k in range(K):
+            for sign in (1, -1):
+                params[k].set(theta[k] + sign * steps[k])
+                plan = sim.plan_substeps(module.material_params().detach(), module.v0.detach(), module.gravity.detach())
+                pinned = max(pinned, plan.substeps)
+            params[k].set(theta[k])
+        sim.substeps_floor = pinned
+        base = _simulate(module, n)
+        rollouts += 1
+        residuals = _Residuals(module, frames, base)
+        r0 = residuals(base)
+        J = torch.zeros(len(r0), K, dtype=torch.float64)
+        ssr0 = float((r0 ** 2).sum())
+        spacing = float(module.input.particle_volume) ** (1 / 3)
+        curv, grad_data, wide = np.zeros(K), np.zeros(K), np.zeros(K)
+        for k in range(K):
+            cols, moved = [], []
+            for sign in (1, -1):
+                params[k].set(theta[k] + sign * steps[k])
+                pos = _simulate(module, n)
+                cols.append(residuals(pos))
+                moved.append(pos[:, module.surface_index].double())
+                rollouts += 1
+            J[:, k] = (cols[0] - cols[1]) / (2 * steps[k])
+            # the re-matched loss is bumpy below the point spacing: measure its curvature over a step
+            # that moves the surface by about one spacing
+            speed = float((moved[0] - moved[1]).norm(dim=-1).max()) / (2 * steps[k])  # m per unit of theta_k
+            wide[k] = float(np.clip(spacing / max(speed, 1e-12), steps[k], WIDE_STEP_MAX[params[k].space]))
+            ssr = []
+            for sign in (1, -1):
+                params[k].set(theta[k] + sign * wide[k])
+                try:
+                    ssr.append(_geometric_ssr(module, frames, _simulate(module, n)))
+                except Exception:  # the simulator rejects that state: treat as strongly disfavoured
+                    ssr.append(math.inf)
+                rollouts += 1
+            params[k].set(theta[k])
+            curv[k] = (ssr[0] - 2 * ssr0 + ssr[1]) / wide[k] ** 2 if all(map(math.isfinite, ssr)) else math.inf
+            grad_data[k] = (ssr[0] - ssr[1]) / (4 * wide[k]) if all(map(math.isfinite, ssr)) else 0.0
+        J_np, r_np = J.cpu().numpy(), r0.cpu().numpy()
+        # re-matching nearest neighbours lets points slide along the surface: the chamfer loss is
+        # flatter than the fixed-match residuals say; scale each column to the measured curvature
+        gn = 2 * (J_np ** 2).sum(axis=0)
+        kappa = np.clip(np.divide(curv, gn, out=np.zeros(K), where=gn > 0), 0.0, 1.0)
+        J_np = J_np * np.sqrt(kappa)
+        n_eff = CLUSTERS_PER_FRAME * len(frames)
+        dof = max(n_eff - K, 1)
+        s2 = max(ssr0 / dof, 1e-30)
+        prior_mean = np.array([p.prior_mean for p in params])
+        prior_prec = np.array([1.0 / p.prior_std ** 2 for p in params])
+        H = J_np.T @ J_np / s2 + np.diag(prior_prec)
+        cov = np.linalg.inv(H)
+        step_info: dict = {"taken": False}
+        if prior_step and K:
+            theta, step_info, extra = _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec)
+            rollouts += extra
+        q = float(student_t.ppf(0.5 + level / 2, dof))
+        sds = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        open_sides, extra = _open_sides(module, params, frames, n, theta, sds, q, np.diag(J_np.T @ J_np), s2)
+        rollouts += extra
+    finally:
+        sim.substeps_floor = floor
+        module._cached_positions = None
+    out = []
+    for k, p in enumerate(params):
+        sd = float(sds[k])
+        ends = [theta[k] - q * sd, theta[k] + q * sd]
+        ratio = sd / p.prior_std
+        label, note = label_for(ratio), ""
+        sides = open_sides.get(k, ())
+        for side in sides:  # the data do not bound this side: the prior does
+            i = 0 if side < 0 else 1
+            ends[i] = theta[k] + side * q * max(sd, p.prior_std)
+        if sides:
+            label = LABELS[2] if len(sides) == 2 else LABELS[max(1, LABELS.index(label))]
+            note = ("the clip bounds it on neither side within the interval" if len(sides) == 2 else
+                    f"the clip bounds it only from {'below' if sides[0] > 0 else 'above'}")
+        lo, hi = sorted((p.physical(ends[0]), p.physical(ends[1])))
+        out.append(ParameterUncertainty(p.name, p.physical(theta[k]), lo, hi, label, ratio, p.space, sd,
+                                        p.physical(p.prior_mean), note))
+    normal = getattr(module, "contact_normal", None)
+    if normal is not None:
+        i = max(range(3), key=lambda j: abs(normal[j]))
+        out.append(ParameterUncertainty(f"v0_{'xyz'[i]}", 0.0, 0.0, 0.0, LABELS[2], 1.0, "linear", 0.0, 0.0,
+                                        note="fixed at 0: the body starts on a non-separating ground"))
+        group = lambda o: (1, o.name) if o.name.startswith("v0_") else (2, "") if o.name.startswith("gravity_") else (  # noqa: E731
+            0, "") if o.name in module.material.param_names else (3, "")
+        out.sort(key=group)  # stable: material, v0 x y z, gravity, effects
+    return Uncertainty(out, level, math.sqrt(s2), int(dof), len(frames), rollouts, time.perf_counter() - start, step_info)
+
+
+def _open_sides(module, params, frames, n, theta, sds, q, curvature, s2) -> tuple[dict[int, tuple[int, ...]], int]:
+    """Sides of the interval of each nonlinear (log10, tanh) parameter the data do not bound.
+
+    The linearization predicts that moving parameter k alone to an end of its interval raises the
+    data term ``SSR / (2 s^2)`` by ``h^2 J_k.J_k / (2 s^2)``. A side where the simulated rise is
+    below :data:`OPEN_SIDE_FRACTION` of that is open: e.g. a stiffness that a small sag bounds
+    from below while any stiffer value looks the same. Parameters whose label is already
+    ``not determined`` are skipped (their interval ends may be decades away). Returns
+    ``({k: (-1 and/or +1)}, rollouts)``.
+    """
+    found: dict[int, tuple[int, ...]] = {}
+    rollouts = 0
+    for p, v in zip(params, theta):
+        p.set(float(v))
+    base = _geometric_ssr(module, frames, _simulate(module, n))
+    rollouts += 1
+    for k, p in enumerate(params):
+        h = q * sds[k]
+        expected = h ** 2 * curvature[k] / (2 * s2)
+        if p.space == "linear" or label_for(sds[k] / p.prior_std) == LABELS[2] or expected <= 0:
+            continue
+        sides = []
+        for side in (-1, 1):
+            p.set(float(theta[k] + side * h))
+            try:
+                rise = (_geometric_ssr(module, frames, _simulate(module, n)) - base) / (2 * s2)
+            except Exception:  # the simulator rejects that state: the data do rule it out
+                rise = math.inf
+            rollouts += 1
+            if rise < OPEN_SIDE_FRACTION * expected:
+                sides.append(side)
+        p.set(float(theta[k]))
+        if sides:
+            found[k] = tuple(sides)
+    return found, rollouts
+
+
+def _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec):
+    """One Gauss-Newton step on ``SSR / (2 s^2) + prior``, halved until the objective decreases."""
+
+    def objective(th, positions=None):
+        for p, v in zip(params, th):
+            p.set(float(v))
+        positions = positions if positions is not None else _simulate(module, n)
+        return _geometric_ssr(module, frames, positions) / (2 * s2) + 0.5 * float(((th - prior_mean) ** 2 * prior_prec).sum())
+
+    grad = grad_data / s2 + prior_prec * (theta - prior_mean)
+    delta = -np.linalg.solve(H, grad)
+    for p, v in zip(params, theta):
+        p.set(float(v))
+    f0 = objective(theta, _simulate(module, n))
+    rollouts = 1
+    for alpha in (1.0, 0.5, 0.25, 0.125):
+        trial = theta + alpha * delta
+        try:
+            f = objective(trial)
+        except Exception:  # a trial state the simulator rejects (e.g. too stiff): try a shorter step
+            f = math.inf
+        rollouts += 1
+        if f < f0:
+            moved = {p.name: float(d) for p, d in zip(params, alpha * delta)}
+            return trial, {"taken": True, "scale": alpha, "objective": [f0, f], "moved_raw": moved}, rollouts
+    for p, v in zip(params, theta):
+        p.set(float(v))
+    return theta, {"taken": False, "objective": [f0, f0]}, rollouts
+
+
+def annotate_rows(rows: list[dict], result: Optional[dict]) -> list[dict]:
+    """Add ``low``, ``high``, ``label`` and ``note`` to summary rows (``{"parameter": name, ...}``)
+    from an :meth:`Uncertainty.to_dict` result; parameters the fit did not optimize get
+    ``label = "fixed (not fitted)"``. Rows are changed in place and returned."""
+    params = (result or {}).get("parameters", {})
+    for row in rows:
+        p = params.get(row["parameter"])
+        if p is not None:
+            row.update(low=p["low"], high=p["high"], label=p["label"], note=p.get("note", ""))
+        elif result is not None:
+            row.update(low=None, high=None, label="fixed (not fitted)", note="")
+    return rows
+
+
+def format_interval(low: Optional[float], high: Optional[float]) -> str:
+    """``[low, high]`` with 3 significant digits, or ``-``."""
+    if low is None or high is None:
+        return "-"
+    return f"[{low:.3g}, {high:.3g}]"
