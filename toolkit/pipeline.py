@@ -60,6 +60,10 @@ class RunSettings:
         optimize_gravity: learn gravity too (group S; ProJo4D does for the Spring-Gaus real
             capture). Gravity starts from the scene's world (canonical frame), or ``sim.gravity``.
         learning_rates: overrides of the physics learning rates.
+        model_options: the other :class:`~toolkit.physics.InversePhysicsModule` arguments
+            (``effects``, ``v0_init``, ``lambda_image``, ``ssim_weight``, ``warmup_fraction``,
+            ``embedding_neighbours``), passed to the module as given (``None``: its defaults;
+            see :mod:`toolkit.run_config`).
         renderer: renderer name or ``"auto"``.
         device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
         checkpoint_every: physics iterations between checkpoints.
@@ -90,6 +94,7 @@ class RunSettings:
     lambda_geometry: float = 1.0
     optimize_gravity: bool = False
     learning_rates: Optional[dict] = None
+    model_options: Optional[dict] = None  # None, not {}: run folders recorded before the field keep their identity
     renderer: str = "auto"
     device: str = "auto"
     checkpoint_every: int = 50
@@ -109,6 +114,9 @@ class RunSettings:
             from toolkit.threads import parse_count
 
             parse_count(self.threads, "RunSettings.threads (--threads)")
+        from toolkit.run_config import check_model_options
+
+        check_model_options(self.model_options)
         return validate_run_settings(self)
 
 
@@ -348,7 +356,7 @@ def make_physics_module(s: RunSettings, input_path: str | Path):
                                 initial_params=s.initial_params, optimize_params=s.optimize_params,
                                 curriculum=resolve_curriculum(s.curriculum, s.curriculum_options), renderer=s.renderer,
                                 sim=sim, lambda_geometry=s.lambda_geometry, learning_rates=s.learning_rates, seed=s.seed,
-                                optimize_gravity=s.optimize_gravity)
+                                optimize_gravity=s.optimize_gravity, **(s.model_options or {}))
 
 
 def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dict:

@@ -10,6 +10,11 @@ Examples::
 The model is :class:`toolkit.physics.InversePhysicsModule`; its ``curriculum`` takes a strategy
 name, a schedule string or ``class_path``/``init_args`` of any :class:`strategies.Strategy`
 subclass (yours included). The resolved config is saved next to the logs.
+
+Loggers: CSV (and TensorBoard when installed) under ``<default_root_dir>/logs`` unless
+``--trainer.logger`` names others (or ``false``). Callbacks the user adds
+(``--trainer.callbacks+=ModelCheckpoint``) run beside ours (curriculum checkpoints, estimate
+writer); a ``ModelCheckpoint`` turns Lightning's checkpointing on for it.
 """
 
 from __future__ import annotations
@@ -44,14 +49,29 @@ def main(argv: Sequence[str] | None = None) -> int:
             # configs/ files carry a `run:` section for `projo4d run` (stage 0, cameras, split)
             parser.add_argument("--run", type=Optional[dict], default=None, help="pipeline settings (used by `projo4d run`)")
 
+        def instantiate_trainer(self, **kwargs):
+            from pytorch_lightning.callbacks import ModelCheckpoint
+
+            # our checkpoints are CurriculumCheckpoint's (enable_checkpointing=False keeps Lightning's
+            # default one away); a ModelCheckpoint the user adds turns Lightning's checkpointing on
+            trainer_cfg = self._get(self.config_init, "trainer", default={})
+            user = trainer_cfg.get("callbacks") or []
+            user = list(user) if isinstance(user, (list, tuple)) else [user]
+            user += [self._get(self.config_init, c) for c in self._parser(self.subcommand).callback_keys]
+            if any(isinstance(cb, ModelCheckpoint) for cb in user) and trainer_cfg.get("enable_checkpointing") is False:
+                kwargs.setdefault("enable_checkpointing", True)
+            return super().instantiate_trainer(**kwargs)
+
         def before_fit(self) -> None:
             from pytorch_lightning.callbacks import ProgressBar
 
             from toolkit.physics.callbacks import curriculum_progress_bar
             from toolkit.physics.fit import default_loggers
 
-            # loggers live under the run folder chosen by --trainer.default_root_dir
-            self.trainer.loggers = default_loggers(self.trainer.default_root_dir)
+            # unless the user chose loggers (--trainer.logger), they live under the run folder of
+            # --trainer.default_root_dir: CSV, and TensorBoard when installed
+            if self._get(self.config, "trainer", default={}).get("logger") in (None, True):
+                self.trainer.loggers = default_loggers(self.trainer.default_root_dir)
             # Lightning's default bar (when enabled) becomes the stage-aware one
             cbs = self.trainer.callbacks
             for i, cb in enumerate(cbs):

@@ -39,22 +39,38 @@ def _threads_arg(text: str) -> int:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    from toolkit.pipeline import RunSettings
+
+    d = {name: f.default for name, f in RunSettings.__dataclass_fields__.items()}  # shown as "(default: ...)"
     parser.add_argument("scene", nargs="?", help="scene folder (PAC-NeRF, Spring-Gaus, Vid2Sim GSO or generated)")
-    parser.add_argument("--config", type=Path, help="YAML file with RunSettings fields (command-line flags override it)")
-    parser.add_argument("--out", help="run folder (default runs/<scene name>)")
-    parser.add_argument("--material", help="registered material (default neo_hookean)")
-    parser.add_argument("--material-options", type=json_arg, help='JSON, e.g. \'{"yield_rule": "pacnerf"}\'')
-    parser.add_argument("--param", action="append", type=_key_value, default=[], help="starting guess NAME=VALUE (repeatable)")
-    parser.add_argument("--curriculum", help="strategy name or schedule string (default progressive)")
-    parser.add_argument("--curriculum-options", type=json_arg, help='JSON options of a named strategy')
-    parser.add_argument("--cameras", help="'sparse', 'all' or comma-separated 0-based indices")
-    parser.add_argument("--n-train", type=int)
-    parser.add_argument("--downscale", type=int)
-    parser.add_argument("--stage0", help="'full', 'tiny' or JSON of Stage0Schedule fields")
-    parser.add_argument("--geometry", choices=["stage0", "oracle"])
-    parser.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\'')
-    parser.add_argument("--device", help="auto, cpu or cuda")
-    parser.add_argument("--seed", type=int)
+    parser.add_argument("--config", type=Path,
+                        help="YAML file: RunSettings fields, or the run:/model:/trainer: sections of configs/ "
+                             "(unknown keys are errors; flags given here override it)")
+    parser.add_argument("--out", help="run folder (default: the config's run.out or trainer.default_root_dir, "
+                                      "else runs/<scene name>)")
+    parser.add_argument("--material", help=f"registered material (default: {d['material']})")
+    parser.add_argument("--material-options", type=json_arg,
+                        help='JSON options of the material, e.g. \'{"yield_rule": "pacnerf"}\' (default: none)')
+    parser.add_argument("--param", action="append", type=_key_value, default=[],
+                        help="starting guess NAME=VALUE, repeatable (default: the material's defaults)")
+    parser.add_argument("--curriculum", help=f"strategy name, schedule string or package.module.Class "
+                                             f"(default: {d['curriculum']})")
+    parser.add_argument("--curriculum-options", type=json_arg, help="JSON options of a named strategy (default: none)")
+    parser.add_argument("--cameras", help=f"fitting cameras: 'sparse' (1-based 2, 6, 10), 'all' or comma-separated "
+                                          f"0-based indices (default: {d['cameras']})")
+    parser.add_argument("--n-train", type=int, metavar="N",
+                        help="training frames [0, N) (default: the scene's recorded split, else min(14, frames - 1))")
+    parser.add_argument("--downscale", type=int, metavar="K",
+                        help=f"integer image downscale factor (default: {d['downscale']})")
+    parser.add_argument("--stage0", help=f"'full' (GIC, 40k iterations), 'tiny' or JSON of Stage0Schedule fields "
+                                         f"(default: {d['stage0']})")
+    parser.add_argument("--geometry", choices=["stage0", "oracle"],
+                        help=f"where the particles come from: stage 0 (the method) or the ground truth "
+                             f"(default: {d['geometry']})")
+    parser.add_argument("--sim", type=json_arg,
+                        help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\' (default: SimConfig defaults)')
+    parser.add_argument("--device", help=f"auto, cpu, cuda or cuda:N (default: {d['device']})")
+    parser.add_argument("--seed", type=int, help=f"seed of stage 0 and of the batch sampling (default: {d['seed']})")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out with the settings it recorded (flags given must agree)")
     parser.add_argument("--overwrite", action="store_true", help="replace the run in --out instead of resuming it")
@@ -65,29 +81,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "give --threads CORES/N or export PROJO4D_CONCURRENT_RUNS=N")
 
 
-#: model-section keys (InversePhysicsModule arguments) that RunSettings carries
-_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_params", "curriculum", "sim", "lambda_geometry",
-               "learning_rates", "renderer", "seed", "optimize_gravity")
-
-
 def settings_from_sections(cfg: dict, path) -> dict:
-    """RunSettings fields from a config in the ``run:`` / ``model:`` / ``trainer:`` layout of ``configs/``."""
-    from toolkit.pipeline import RunSettings
+    """RunSettings fields from a config in the ``run:`` / ``model:`` / ``trainer:`` layout of ``configs/``
+    (see :mod:`toolkit.run_config`: every key is carried or refused, none is dropped)."""
+    from toolkit.run_config import settings_from_sections as from_sections
 
-    run = dict(cfg.get("run") or {})
-    model = dict(cfg.get("model") or {})
-    unknown_run = set(run) - set(RunSettings.__dataclass_fields__)
-    if unknown_run:
-        raise SystemExit(f"projo4d run: {path}: unknown run field(s) {sorted(unknown_run)}")
-    out = {**run, **{k: model[k] for k in _MODEL_KEYS if k in model}}
-    curriculum = out.get("curriculum")
-    if isinstance(curriculum, dict):  # class_path / init_args
-        out["curriculum"] = curriculum["class_path"]
-        out["curriculum_options"] = dict(curriculum.get("init_args") or {})
-    accel = (cfg.get("trainer") or {}).get("accelerator")
-    if accel in ("cpu",) and "device" not in out:
-        out["device"] = "cpu"
-    return out
+    return from_sections(cfg, path)
 
 
 def settings_from_args(args: argparse.Namespace):
@@ -102,12 +101,13 @@ def settings_from_args(args: argparse.Namespace):
         base = yaml.safe_load(args.config.read_text()) or {}
         if not isinstance(base, dict):
             raise SystemExit(f"projo4d run: {args.config} must hold a mapping of RunSettings fields")
-        if "model" in base or "run" in base:
+        if {"model", "run", "trainer"} & set(base):
             base = settings_from_sections(base, args.config)
-        unknown = set(base) - set(RunSettings.__dataclass_fields__)
-        if unknown:
-            raise SystemExit(f"projo4d run: {args.config} has unknown field(s) {sorted(unknown)}; "
-                             f"known: {sorted(RunSettings.__dataclass_fields__)}")
+        unknown = sorted(set(base) - set(RunSettings.__dataclass_fields__))
+        if unknown:  # the flat layout: RunSettings fields at the top
+            raise SettingsError(f"{args.config}: {unknown[0]}", base[unknown[0]],
+                                f"unknown field; valid: {', '.join(sorted(RunSettings.__dataclass_fields__))} "
+                                "(or the run:/model:/trainer: sections of configs/)")
     over = {
         "scene": args.scene, "out": args.out, "material": args.material, "material_options": args.material_options,
         "curriculum": args.curriculum, "curriculum_options": args.curriculum_options, "n_train": args.n_train,

@@ -99,7 +99,10 @@ class InversePhysicsModule(pl.LightningModule):
             Lightning's ``Trainer(strategy=...)``, which is about distributed training.)
         renderer: registered renderer name, or ``"auto"`` (``warp`` if registered, else ``torch``).
         sim: simulator settings (``SimConfig``); ``frame_dt`` is taken from the input's times.
-        v0_init: initial guess of v0 (m/s), default zero.
+        v0_init: initial guess of v0 (m/s): a list of 3 numbers wins; ``None`` or ``"auto"``
+            (default) estimates it from the stage-0 surfaces by a ballistic fit of the centroid over
+            the frames before ground contact (:mod:`toolkit.physics.initial_velocity`; zero when too
+            few such frames); ``"zero"`` starts from zero. The estimate is kept in ``v0_estimate``.
         optimize_gravity: put gravity in ``S`` too.
         lambda_image: weight of the image term per camera; default ``1 / |C|``.
         lambda_geometry: weight of the geometric term.
@@ -122,7 +125,7 @@ class InversePhysicsModule(pl.LightningModule):
         curriculum: Union[str, Strategy] = "progressive",
         renderer: str = "auto",
         sim: Optional[SimConfig] = None,
-        v0_init: Optional[list[float]] = None,
+        v0_init: Optional[Union[list[float], str]] = None,
         optimize_gravity: bool = False,
         lambda_image: Optional[float] = None,
         lambda_geometry: float = 1.0,
@@ -196,10 +199,14 @@ class InversePhysicsModule(pl.LightningModule):
             self.colors = nn.Parameter(g.colors.float().clone())
             self.sh = None
         # ---------------------------------------------------------- S: initial state
-        self.v0 = nn.Parameter(torch.tensor(v0_init if v0_init is not None else [0.0, 0.0, 0.0], dtype=torch.float32))
+        #: the stage-0 estimate of v0 (``V0Estimate.to_dict()``), None when not estimated or not estimable
+        self.v0_estimate: Optional[dict] = None
+        self.v0 = nn.Parameter(torch.tensor(self._initial_v0(v0_init, inp, cfg), dtype=torch.float32))
         # resting on a sticky/slip ground at frame 0: v0 has no normal component (issue #24, toolkit.physics.contact)
         self.contact_normal = ground_contact_normal(inp.particles, cfg, inp.surfaces)
         project_off_ground(self.v0.data, self.contact_normal)
+        #: where v0 started (m/s): the uncertainty's prior is centred here
+        self.v0_start: list[float] = self.v0.detach().tolist()
         #: the Laplace posterior of the last :meth:`uncertainty` call (a dict; kept in checkpoints)
         self.uncertainty_result: Optional[dict] = None
         gravity = torch.tensor(list(cfg.gravity), dtype=torch.float32)
@@ -232,6 +239,30 @@ class InversePhysicsModule(pl.LightningModule):
         self._ground_truth = inp.ground_truth or {}
 
     # ------------------------------------------------------------------ helpers
+    def _initial_v0(self, v0_init, inp: PhysicsInput, cfg: SimConfig) -> list[float]:
+        """v0 to start from (m/s): explicit, zero, or the stage-0 ballistic estimate (see ``v0_init``)."""
+        if v0_init is None or (isinstance(v0_init, str) and v0_init == "auto"):
+            from toolkit.physics.initial_velocity import initial_velocity_from_input
+
+            self.hparams["v0_init"] = None  # hparams hold None or 3 numbers (resumes re-estimate the same)
+            est = initial_velocity_from_input(inp, cfg)
+            if est is None:
+                log.info("v0 starts at zero: fewer than 3 stage-0 frames before ground contact to estimate it from")
+                return [0.0, 0.0, 0.0]
+            self.v0_estimate = est.to_dict()
+            log.info("v0 starts at the stage-0 estimate (%.3f, %.3f, %.3f) m/s (%s fit over frames %s, rms %.2g m; %s)",
+                     *est.v0, est.method, est.frames, est.rms_residual, est.stop_reason)
+            return list(est.v0)
+        if isinstance(v0_init, str):
+            if v0_init == "zero":
+                self.hparams["v0_init"] = [0.0, 0.0, 0.0]
+                return [0.0, 0.0, 0.0]
+            raise ValueError(f"v0_init must be 3 numbers (m/s), 'auto' or 'zero', got {v0_init!r}")
+        v = [float(c) for c in v0_init]
+        if len(v) != 3:
+            raise ValueError(f"v0_init must have 3 components (m/s), got {v0_init!r}")
+        return v
+
     @staticmethod
     def _surface_particles(inp: PhysicsInput) -> torch.Tensor:
         from scipy.spatial import cKDTree

@@ -168,7 +168,7 @@ def _parameters(module) -> list[_Param]:
         std = PRIOR_STD.get(p.transform) or max(abs(mean), 1.0)
         out.append(_Param(n, p.transform, mean, std, (lambda t=t: float(t.detach())),
                           (lambda v, t=t: t.data.fill_(v)), (lambda v, p=p: float(p.to_physical(torch.tensor(v))))))
-    v0_init = (module.hparams.get("v0_init") or [0.0, 0.0, 0.0])
+    v0_init = getattr(module, "v0_start", None) or module.hparams.get("v0_init") or [0.0, 0.0, 0.0]
     normal = getattr(module, "contact_normal", None)
     for i, c in enumerate("xyz"):
         if normal is not None and abs(normal[i]) > 0.5:
