@@ -111,15 +111,10 @@ trainer: {accelerator: cpu, default_root_dir: RUN}
     ("model: {material: sand}\noptimizer: {lr: 0.1}\n", "section", "optimizer"),
 ])
 def test_an_unknown_key_fails_in_one_line_naming_it_and_the_valid_ones(tmp_path, capsys, text, where, key):
-    config = _write(tmp_path, text)
-    with pytest.raises(SystemExit) as exc:
-        main(["run", str(tmp_path / "no_scene"), "--config", str(config), "--out", str(tmp_path / "out")])
-    err = capsys.readouterr().err.strip()
-    assert exc.value.code == 2 and len(err.splitlines()) == 1, err
+    err = _config_error(tmp_path, capsys, text)
     assert f"{where}.{key}" in err and "unknown key" in err and "valid keys" in err
     valid = {"model": "ssim_weight", "trainer": "default_root_dir", "run": "stage0", "section": "trainer"}[where]
     assert valid in err
-    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("text, field, message", [
@@ -133,13 +128,19 @@ def test_an_unknown_key_fails_in_one_line_naming_it_and_the_valid_ones(tmp_path,
     ("foo: 1\n", "foo", "unknown field"),
 ])
 def test_bad_values_fail_before_any_work(tmp_path, capsys, text, field, message):
+    err = _config_error(tmp_path, capsys, text)
+    assert field in err and message in err, err
+
+
+def _config_error(tmp_path, capsys, text: str) -> str:
+    """``projo4d run --config`` with ``text``: exit 2, one line on stderr (returned), nothing written."""
     config = _write(tmp_path, text)
     with pytest.raises(SystemExit) as exc:
         main(["run", str(tmp_path / "no_scene"), "--config", str(config), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and len(err.splitlines()) == 1, err
-    assert field in err and message in err, err
     assert not (tmp_path / "out").exists()
+    return err
 
 
 def test_run_folders_recorded_before_model_options_keep_their_identity():
