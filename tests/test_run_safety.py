@@ -9,6 +9,7 @@ atomically: whatever was on disk before, and nothing half-written.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -445,3 +446,18 @@ def test_projo4d_fit_resumes_from_its_own_config_and_checkpoint(reference, tmp_p
     resumed = json.loads((root / "estimate.json").read_text())
     assert resumed["iterations"] == 5
     assert resumed["params"] == straight["params"] and resumed["v0"] == straight["v0"]
+
+
+def test_stage0_logs_its_losses_gaussian_count_and_psnr(reference):
+    """Stage 0 writes CSV logs next to its checkpoints (issue #19): the tiny schedule logs every
+    50 iterations, so the 60-iteration reference run has one row, at iteration 50."""
+    import csv
+
+    ref_out, _ = reference
+    rows = list(csv.DictReader(open(ref_out / "stage0" / "logs" / "version_0" / "metrics.csv")))
+    rows = [r for r in rows if r.get("train/loss")]
+    assert [float(r["train/iteration"]) for r in rows] == [50.0]
+    r = rows[0]
+    assert 0 < float(r["train/loss"]) < 1 and float(r["train/n_gaussians"]) >= 100
+    # PSNR of an RGB error in [0, 1]: positive and consistent with the logged L1 (MSE <= L1 here)
+    assert float(r["train/psnr"]) >= -10 * math.log10(float(r["train/l1"])) > 0

@@ -733,10 +733,15 @@ class Gaussians4DModule(pl.LightningModule):
 
         self.step = step + 1
         if logging_now:
-            metrics = {"train/loss": loss.detach(), "train/l1": l1.detach(), "train/ssim": ssim.detach(), "train/n_gaussians": float(g.n)}
+            psnr = -10.0 * torch.log10(((rgb - gt) ** 2).mean().detach().clamp_min(1e-10))
+            metrics = {"train/loss": loss.detach(), "train/l1": l1.detach(), "train/ssim": ssim.detach(), "train/psnr": psnr,
+                       "train/n_gaussians": float(g.n), "train/iteration": float(it)}
             if alpha_loss is not None:
                 metrics["train/alpha_l1"] = alpha_loss.detach()
-            self.log_dict(metrics, prog_bar=True, on_step=True, on_epoch=False, batch_size=len(cams))
+            self.log_dict(metrics, prog_bar=True, logger=False, on_step=True, on_epoch=False, batch_size=len(cams))
+            # written here, once per logging iteration: Lightning would repeat step-logged values on later steps
+            for lg in self.loggers:
+                lg.log_metrics({k: float(v) for k, v in metrics.items()}, step=it)
 
     # ------------------------------------------------------------------ checkpoints
 
@@ -780,6 +785,7 @@ def fit_stage0(
     stop_at: Optional[int] = None,
     accelerator: str = "auto",
     progress_bar: bool = False,
+    logger: Any = None,
     **module_kwargs: Any,
 ) -> Gaussians4DModule:
     """Train stage 0 with a ready-configured Lightning ``Trainer``.
@@ -795,6 +801,10 @@ def fit_stage0(
         accelerator: Lightning accelerator (``"cpu"``, ``"gpu"``, ``"auto"``).
         progress_bar: Show the stage-0 progress bar (``stage 0``, iteration/total, ETA, loss;
             drawn only on a terminal, see :func:`toolkit.progress.stage0_progress_bar`).
+        logger: Lightning logger(s) for the ``train/*`` metrics (loss, L1, SSIM, PSNR in dB,
+            Gaussian count, iteration; every ``schedule.log_every`` iterations). Default: with
+            ``out_dir``, CSV under ``out_dir/logs/version_K`` (and TensorBoard when installed, as
+            the physics stages do); without, none. ``False`` turns logging off.
 
     Returns:
         The trained module.
@@ -808,12 +818,17 @@ def fit_stage0(
         from toolkit.progress import stage0_progress_bar
 
         callbacks.append(stage0_progress_bar())
+    if logger is None:
+        from toolkit.physics.fit import default_loggers
+
+        logger = default_loggers(out_dir) if out_dir is not None else False
     trainer = pl.Trainer(
         accelerator=accelerator,
         devices=1,
         max_epochs=1,
         max_steps=-1,
-        logger=False,
+        logger=logger,
+        log_every_n_steps=1,  # the module logs every schedule.log_every iterations itself
         enable_checkpointing=False,
         enable_model_summary=False,
         enable_progress_bar=progress_bar,
