@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from toolkit.atomic import write_text
 from toolkit.twin.format import TWIN_FORMAT, TWIN_SCHEMA, TWIN_VERSION, UNITS, DigitalTwin
 
 __all__ = ["twin_from_module", "export_run", "write_sequence"]
@@ -131,8 +132,8 @@ def export_run(run: str | Path, out: Optional[str | Path] = None, sequence: bool
     module = load_fitted_module(run, device=device)
     twin = twin_from_module(module, source={"run": str(run.resolve())})
     files = {"twin": twin.save(out / "twin.npz")}
-    (out / "twin.json").write_text(json.dumps(twin.meta, indent=2, sort_keys=True) + "\n")
-    (out / "twin.schema.json").write_text(json.dumps(TWIN_SCHEMA, indent=2) + "\n")
+    write_text(out / "twin.json", json.dumps(twin.meta, indent=2, sort_keys=True) + "\n")
+    write_text(out / "twin.schema.json", json.dumps(TWIN_SCHEMA, indent=2) + "\n")
     files["gaussians"] = save_ply(out / "gaussians.ply", twin_gaussians(twin))
     if sequence:
         pred = run / "evaluation" / "prediction.npz"

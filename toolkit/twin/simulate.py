@@ -21,6 +21,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from toolkit.atomic import write_with
 from toolkit.twin.format import DigitalTwin, TwinFormatError
 
 __all__ = ["TwinTrajectory", "simulate_twin", "twin_gaussians", "dataset_cameras", "orbit_cameras", "render_trajectory",
@@ -213,9 +214,9 @@ def write_video(path, frames: np.ndarray, fps: float, captions: Optional[Sequenc
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        iio.imwrite(path, frames, fps=fps, codec="libx264", macro_block_size=1)
+        write_with(path, lambda p: iio.imwrite(p, frames, fps=fps, codec="libx264", macro_block_size=1))
         return path
     except Exception:  # noqa: BLE001 - no ffmpeg: a GIF
         gif = path.with_suffix(".gif")
-        iio.imwrite(gif, frames, duration=1000 / fps, loop=0)
+        write_with(gif, lambda p: iio.imwrite(p, frames, duration=1000 / fps, loop=0))
         return gif
