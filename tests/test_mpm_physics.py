@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import warp as wp
 
 from materials import get_material
 from tests.mpm_scenes import block, extent
@@ -54,10 +55,31 @@ def test_mass_conserved_in_p2g(device):
     cfg = SimConfig(dx=0.05, substeps=20)
     sim = MPMSimulator("neo_hookean", cfg, device=device)
     x0 = block((7, 4, 5), 0.025, (0.43, 0.2, 0.61))
-    sim.rollout(x0, torch.tensor([0.3, -1.0, 0.2]), sim.material.pack({"E": 1e4}), n_frames=2)
-    grid = sim._pingpong(x0.shape[0])[2]
+    params = sim.material.pack({"E": 1e4})
+    out = sim.rollout(x0, torch.tensor([0.3, -1.0, 0.2]), params, n_frames=2)
+    # a forward rollout leaves its one grid cleared for the next call (the grid update clears it) ...
+    a, b, grid = sim._pingpong(x0.shape[0])
+    assert not grid.m.numpy().any() and not grid.mv.numpy().any()
+    # ... so scatter the last state once more, with the grid kept for inspection
+    wp_params, wp_gravity, wp_effects = sim._inputs(params.to(sim._torch_device)[None], torch.tensor(cfg.gravity), sim.pack_effects())
+    a.x.assign(wp.from_torch(out.positions[-1].contiguous(), dtype=wp.vec3))
+    sim._substep(a, b, grid, wp_params, 0, wp_gravity, wp_effects, cfg.frame_dt / out.substeps, 0, sim._status())
     total = float(grid.m.numpy().astype(np.float64).sum())
     assert total == pytest.approx(x0.shape[0] * cfg.mass, rel=1e-5)
+
+
+def test_grid_cleared_by_the_grid_update_matches_cleared_per_substep(device):
+    """The forward pass clears its grid inside the grid update; passive tracers force the slow,
+    obvious path (two memsets per substep). Both must give bit-identical states (deterministic
+    atomics, so that this holds on CUDA too)."""
+    cfg = SimConfig(dx=0.05, substeps=20, deterministic=True)
+    sim = MPMSimulator("neo_hookean", cfg, device=device)
+    x0 = block((7, 4, 5), 0.025, (0.43, 0.2, 0.61))
+    args = (x0, torch.tensor([0.3, -1.0, 0.2]), sim.material.pack({"E": 1e4}))
+    fast = sim.rollout(*args, n_frames=3)
+    slow = sim.rollout(*args, n_frames=3, tracers=x0[:4])
+    assert torch.equal(fast.positions, slow.positions) and torch.equal(fast.velocities, slow.velocities)
+    assert (fast.positions[-1] - fast.positions[0]).abs().max() > 0.01  # the body moved and hit the ground
 
 
 def _neo_hookean_energy(F: torch.Tensor, E: float, nu: float) -> torch.Tensor:
@@ -280,3 +302,4 @@ def test_deterministic_option_is_local(device):
     b = sim.rollout(x0, torch.tensor([0.3, -1.0, 0.0]), sim.material.pack({"E": 1e4}), n_frames=3).positions
     assert torch.equal(a, b)
     assert wp.config.deterministic == before
+

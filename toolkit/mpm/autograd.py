@@ -47,13 +47,22 @@ class SimulateFunction(torch.autograd.Function):
         g_vel = torch.zeros((ctx.n_frames + 1, n, 3), device=dev) if g_vel is None else g_vel.contiguous()
         chunks = sim.chunks(ctx.n_frames, substeps)
         dt = sim.config.frame_dt / substeps
+        need_params, need_gravity, need_effects = ctx.needs_input_grad[5:8]
+        shared_row = params.shape[0] == 1 and n > 1
+        if need_params and shared_row:
+            # one row per particle: every particle's adjoint adds into its own row instead of all
+            # of them contending for the same P floats; the rows are summed below
+            params = params.expand(n, params.shape[1]).contiguous()
         per_particle = int(params.shape[0] == n and n > 1)
+        grads = (need_params, need_gravity, need_effects and effect_params.shape[0] > 0)
 
         with sim.stream():
-            states, grids = sim._pool(n, max(length for _, _, length in chunks))
-            wp_params, wp_gravity, wp_effects = sim._inputs(params, gravity, effect_params)
+            pool = sim._pool(n, max(length for _, _, length in chunks))
+            states, grids = pool.states, pool.grids
+            wp_params, wp_gravity, wp_effects = sim._inputs(params, gravity, effect_params, grads)
             for a in (wp_params, wp_gravity, wp_effects):
-                a.grad.zero_()
+                if a.grad is not None:
+                    a.grad.zero_()
             carry = sim._persistent(("carry", n), lambda: [wp.zeros_like(a) for a in states[0].arrays()])
             for a in carry:
                 a.zero_()
@@ -65,14 +74,11 @@ class SimulateFunction(torch.autograd.Function):
 
             def chunk_backward(local: int, length: int) -> None:
                 # recompute the chunk on a tape (one state and grid per substep), then its adjoint
-                for st in states[: length + 1]:
-                    st.zero_grad()
-                for g in grids[:length]:
-                    g.zero_grad()
+                pool.clear()
                 tape = wp.Tape()
                 with tape:
                     for k in range(length):
-                        sim._substep(states[k], states[k + 1], grids[k], *args, local + k, status)
+                        sim._substep(states[k], states[k + 1], grids[k], *args, local + k, status, grid_mode="cleared")
                 tape.backward(grads={a: g for a, g in zip(states[length].arrays(), carry)})
                 for dst, src in zip(carry, states[0].arrays()):
                     wp.copy(dst, src.grad)
@@ -88,7 +94,8 @@ class SimulateFunction(torch.autograd.Function):
                 if graphs is None:
                     chunk_backward(local, length)
                     continue
-                key = ("backward", local, length, id(states[0].x), id(wp_params), per_particle, dt)
+                key = ("backward", local, length, id(states[0].x), id(wp_params), id(wp_gravity), id(wp_effects),
+                       per_particle, dt)
                 if key not in graphs:
                     with wp.ScopedCapture(device=sim.device, force_module_load=True) as capture:
                         chunk_backward(local, length)
@@ -98,7 +105,14 @@ class SimulateFunction(torch.autograd.Function):
         # torch's stream has waited for the Warp work (sim.stream())
         g_x0 = wp.to_torch(carry[0]) + g_pos[0]
         g_v0 = wp.to_torch(carry[1]) + g_vel[0]
-        g_params = wp.to_torch(wp_params.grad).clone()
-        g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
-        g_effects = wp.to_torch(wp_effects.grad)[: effect_params.shape[0]].clone()
+        g_params = g_gravity = g_effects = None
+        if need_params:
+            g_params = wp.to_torch(wp_params.grad).clone()
+            if shared_row:
+                g_params = g_params.sum(0, keepdim=True)
+        if need_gravity:
+            g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
+        if need_effects:
+            g_effects = (wp.to_torch(wp_effects.grad)[: effect_params.shape[0]].clone() if grads[2]
+                         else torch.zeros_like(effect_params))
         return None, None, None, g_x0, g_v0, g_params, g_gravity, g_effects

@@ -153,7 +153,8 @@ def _then(first: Callable, second: Callable) -> Callable:
 
 
 def make_grid_update_kernel(
-    effects: Callable, has_ground: bool, boundary: str, domain_walls: bool, deterministic: bool = False
+    effects: Callable, has_ground: bool, boundary: str, domain_walls: bool, deterministic: bool = False,
+    clear_after: bool = False,
 ) -> "wp.Kernel":
     """Grid update: momentum -> velocity, gravity, effects, ground and domain boundaries.
 
@@ -164,11 +165,18 @@ def make_grid_update_kernel(
         boundary: ``sticky``, ``slip`` or ``separate`` (ground contact at the ground layers).
         domain_walls: apply separating walls on the outer two node layers (``clamp`` mode).
         deterministic: deterministic atomics (the adjoint reduces into gravity and effect parameters).
+        clear_after: also zero each node's mass and momentum once read, so the grid is clear for the
+            next substep's P2G without two memsets per substep (forward-only: this variant has no
+            adjoint, and nothing may read the mass after it, e.g. tracer advection).
     """
     has_ground = bool(has_ground)
+    clear_after = bool(clear_after)
     mode = {"sticky": 0, "slip": 1, "separate": 2}[boundary]
+    options = dict(_options(deterministic) or {})
+    if clear_after:
+        options["enable_backward"] = False
 
-    @wp.kernel(module="unique", module_options=_options(deterministic))
+    @wp.kernel(module="unique", module_options=options or None)
     def grid_update(
         grid_m: wp.array3d(dtype=float),
         grid_mv: wp.array3d(dtype=wp.vec3),
@@ -182,10 +190,14 @@ def make_grid_update_kernel(
     ):
         i, j, k = wp.tid()
         m = grid_m[i, j, k]
+        mv = grid_mv[i, j, k]
         v = wp.vec3(0.0)
+        if wp.static(clear_after):
+            grid_m[i, j, k] = 0.0
+            grid_mv[i, j, k] = wp.vec3(0.0)
         if m > 1.0e-15:
             xn = origin + wp.vec3(float(i), float(j), float(k)) * dx
-            v = grid_mv[i, j, k] / m + dt * gravity[0]
+            v = mv / m + dt * gravity[0]
             v = effects(v, xn, dt, effect_params)
             if wp.static(has_ground):
                 if j <= ground_j:

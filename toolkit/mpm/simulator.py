@@ -31,7 +31,7 @@ import warp as wp
 from materials import Material, get_material
 from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
 from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
-from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult
+from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult, TapedChunk
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
 from toolkit.mpm.kernels import (
     NO_FLAG,
@@ -264,24 +264,24 @@ class MPMSimulator:
                 ground_top = (ground_lattice_index(cfg.ground_height, cfg.dx) + 0.5) * cfg.dx
             ctx = EffectContext(ground_height=cfg.ground_height, boundary=cfg.boundary, dx=cfg.dx, ground_top=ground_top)
             funcs = [e.build(off, ctx) for e, off in zip(self.effects, self._effect_offsets)]
+            effects = compose_effects(funcs)
+            grid_args = (effects, cfg.ground_height is not None, cfg.boundary, cfg.out_of_domain == "clamp", cfg.deterministic)
             _KERNEL_CACHE[key] = (
                 make_p2g_kernel(self.material.warp_update(), cfg.deterministic),
-                make_grid_update_kernel(compose_effects(funcs), cfg.ground_height is not None, cfg.boundary,
-                                        cfg.out_of_domain == "clamp", cfg.deterministic),
+                make_grid_update_kernel(*grid_args),
                 make_g2p_kernel(cfg.deterministic),
+                make_grid_update_kernel(*grid_args, clear_after=True),
             )
         return _KERNEL_CACHE[key]
 
     # ------------------------------------------------------------------ buffers
-    def _pool(self, n: int, chunk: int):
+    def _pool(self, n: int, chunk: int) -> TapedChunk:
         """Per-substep states and grids for one taped chunk (allocated once, reused)."""
         key = ("pool", n, chunk)
         if key not in self._buffers:
             self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "pool"}
             self._graphs = {}
-            states = [ParticleBuffers(n, self.device, requires_grad=True) for _ in range(chunk + 1)]
-            grids = [GridBuffers(self._grid.dims, self.device, requires_grad=True) for _ in range(chunk)]
-            self._buffers[key] = (states, grids)
+            self._buffers[key] = TapedChunk(n, self._grid.dims, chunk, self.device)
         return self._buffers[key]
 
     def _pingpong(self, n: int):
@@ -301,18 +301,24 @@ class MPMSimulator:
             self._buffers[key] = make()
         return self._buffers[key]
 
-    def _inputs(self, params: torch.Tensor, gravity: torch.Tensor, effect_params: torch.Tensor):
-        """Persistent Warp copies (with gradient buffers) of one call's inputs.
+    def _inputs(self, params: torch.Tensor, gravity: torch.Tensor, effect_params: torch.Tensor,
+                grads: tuple[bool, bool, bool] = (False, False, False)):
+        """Persistent Warp copies of one call's inputs: material parameters (R, P), gravity and the
+        effect parameters.
 
         Captured graphs bake in array addresses, so the per-call torch tensors are copied into
-        simulator-owned arrays that every graph references.
+        simulator-owned arrays that every graph references. ``grads`` says which of the three get a
+        gradient buffer: an input without one costs its adjoint nothing, while one with a gradient
+        receives an atomic add from every particle (parameters) or grid node (gravity, effects)
+        that reads it, so callers pass per-particle parameters when they want their gradient.
         """
         shape = tuple(params.shape)
         n_eff = int(effect_params.shape[0])
-        p, g, e = self._persistent(("inputs", shape, n_eff), lambda: (
-            wp.zeros(shape, dtype=float, device=self.device, requires_grad=True),
-            wp.zeros(1, dtype=wp.vec3, device=self.device, requires_grad=True),
-            wp.zeros(max(n_eff, 1), dtype=float, device=self.device, requires_grad=True),
+        grads = tuple(bool(g) for g in grads)
+        p, g, e = self._persistent(("inputs", shape, n_eff, grads), lambda: (
+            wp.zeros(shape, dtype=float, device=self.device, requires_grad=grads[0]),
+            wp.zeros(1, dtype=wp.vec3, device=self.device, requires_grad=grads[1]),
+            wp.zeros(max(n_eff, 1), dtype=float, device=self.device, requires_grad=grads[2]),
         ))
         wp.copy(p, wp.from_torch(params.detach().contiguous(), dtype=wp.float32))
         wp.copy(g, wp.from_torch(gravity.detach().reshape(1, 3).contiguous(), dtype=wp.vec3))
@@ -332,14 +338,24 @@ class MPMSimulator:
 
     # ------------------------------------------------------------------ substeps
     def _substep(self, s_in: ParticleBuffers, s_out: ParticleBuffers, grid: GridBuffers, params, per_particle: int,
-                 gravity, effect_params, dt: float, step: int, status, tracers=None) -> None:
-        """One substep s_in -> s_out; ``step`` is the frame-local substep index written to the flags."""
-        p2g, grid_update, g2p = self._kernels()
+                 gravity, effect_params, dt: float, step: int, status, tracers=None, grid_mode: str = "clear") -> None:
+        """One substep s_in -> s_out; ``step`` is the frame-local substep index written to the flags.
+
+        ``grid_mode`` says who clears the grid's mass and momentum before the P2G scatter:
+        ``"clear"``: two memsets here; ``"cleared"``: the caller did (a taped chunk clears all its
+        grids at once), and the grid stays filled for the adjoint; ``"reuse"`` (forward-only
+        passes with one grid): it is clear on entry and the grid update clears it again as it
+        reads it (except with tracers, whose advection reads the mass afterwards).
+        """
+        p2g, grid_update, g2p, grid_update_clearing = self._kernels()
         cfg = self.config
         spec = self._grid
         origin = wp.vec3(*spec.origin)
         n = s_in.x.shape[0]
-        grid.clear()
+        if grid_mode == "reuse" and tracers is None:
+            grid_update = grid_update_clearing
+        elif grid_mode != "cleared":
+            grid.clear()
         wp.launch(
             p2g,
             dim=n,
@@ -645,7 +661,7 @@ class MPMSimulator:
         def chain():
             s_in, s_out = a, b
             for k in range(length):
-                self._substep(s_in, s_out, grid, *args, first + k, status, tracers)
+                self._substep(s_in, s_out, grid, *args, first + k, status, tracers, grid_mode="reuse")
                 s_in, s_out = s_out, s_in
                 if tracers is not None:
                     tracers.reverse()
@@ -676,6 +692,7 @@ class MPMSimulator:
         ground = self.config.ground_height
         self._ground_j = self._grid.ground_layer(ground) if ground is not None else -1
         a, b, grid = self._pingpong(n)
+        grid.clear()  # the substeps keep it clear from here on (see _substep's grid_mode)
         status = self._status()
         per_particle = int(params.shape[0] == n and n > 1)
         wp_params, wp_gravity, wp_effects = self._inputs(params, gravity, effect_params)

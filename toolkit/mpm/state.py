@@ -12,7 +12,7 @@ import warp as wp
 
 from toolkit.mpm.planning import ground_lattice_index
 
-__all__ = ["GridSpec", "SimulationResult", "RolloutResult", "ParticleBuffers", "GridBuffers"]
+__all__ = ["GridSpec", "SimulationResult", "RolloutResult", "ParticleBuffers", "GridBuffers", "Arena"]
 
 
 @dataclass(frozen=True)
@@ -83,8 +83,39 @@ class RolloutResult:
     tracers: Optional[torch.Tensor] = None
 
 
+class Arena:
+    """Typed Warp arrays carved out of one zero-initialized device buffer.
+
+    Clearing the arena (:meth:`zero_`) is one memset however many arrays it holds, which keeps a
+    captured graph short: a taped chunk of 25 substeps has ~170 gradient and grid arrays to clear.
+
+    Args:
+        items: ``(shape, dtype)`` of each array, in order.
+        device: Warp device.
+    """
+
+    _ALIGN = 256  # bytes; every view starts on a boundary this large
+
+    def __init__(self, items: list[tuple[tuple[int, ...], type]], device: str):
+        offsets, total = [], 0
+        for shape, dtype in items:
+            offsets.append(total)
+            nbytes = int(np.prod(shape)) * wp.types.type_size_in_bytes(dtype)
+            total += -(-nbytes // self._ALIGN) * self._ALIGN
+        self.base = wp.zeros(max(total // 4, 1), dtype=wp.float32, device=device)
+        self.views = [
+            wp.array(ptr=self.base.ptr + off, dtype=dtype, shape=shape, device=device, capacity=total - off)
+            for off, (shape, dtype) in zip(offsets, items)
+        ]
+
+    def zero_(self) -> None:
+        self.base.zero_()
+
+
 class ParticleBuffers:
     """Per-particle arrays of one substep: x, v (vec3), C, F (mat33), J (float)."""
+
+    SPEC = (("x", wp.vec3), ("v", wp.vec3), ("C", wp.mat33), ("F", wp.mat33), ("J", wp.float32))
 
     def __init__(self, n: int, device: str, requires_grad: bool = False):
         self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
@@ -109,6 +140,8 @@ class ParticleBuffers:
 class GridBuffers:
     """Grid arrays of one substep: mass m (float), momentum mv and velocity v (vec3)."""
 
+    SPEC = (("m", wp.float32), ("mv", wp.vec3), ("v", wp.vec3))
+
     def __init__(self, dims: tuple[int, int, int], device: str, requires_grad: bool = False):
         self.m = wp.zeros(dims, dtype=float, device=device, requires_grad=requires_grad)
         self.mv = wp.zeros(dims, dtype=wp.vec3, device=device, requires_grad=requires_grad)
@@ -122,3 +155,27 @@ class GridBuffers:
         for a in (self.m, self.mv, self.v):
             if a.grad is not None:
                 a.grad.zero_()
+
+
+class TapedChunk:
+    """The buffers of one taped chunk of ``length`` substeps: ``length + 1`` particle states and
+    ``length`` grids, with every gradient in one :class:`Arena` and every grid's mass and momentum
+    in another, so a chunk's recompute and adjoint start from two memsets instead of ~13 per substep.
+    """
+
+    def __init__(self, n: int, dims: tuple[int, int, int], length: int, device: str):
+        self.states = [ParticleBuffers(n, device) for _ in range(length + 1)]
+        self.grids = [GridBuffers(dims, device) for _ in range(length)]
+        self.grid_values = Arena([(dims, dt) for _ in self.grids for name, dt in GridBuffers.SPEC if name != "v"], device)
+        it = iter(self.grid_values.views)
+        for g in self.grids:
+            g.m, g.mv = next(it), next(it)
+        arrays = [a for st in self.states for a in st.arrays()] + [a for g in self.grids for a in (g.m, g.mv, g.v)]
+        self.grads = Arena([(tuple(a.shape), a.dtype) for a in arrays], device)
+        for a, view in zip(arrays, self.grads.views):
+            a.grad = view
+
+    def clear(self) -> None:
+        """Zero every gradient and every grid's mass and momentum (two memsets)."""
+        self.grads.zero_()
+        self.grid_values.zero_()
