@@ -21,7 +21,8 @@ PACKAGES = ("toolkit", "materials", "renderers", "strategies")
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 PROJECT = PYPROJECT["project"]
 # import name -> distribution for optional packages that need not be installed here
-NOT_INSTALLED_HERE = {"gsplat": "gsplat", "ray": "ray", "open3d": "open3d", "tensorboard": "tensorboard"}
+NOT_INSTALLED_HERE = {"gsplat": "gsplat", "ray": "ray", "open3d": "open3d", "tensorboard": "tensorboard",
+                      "submitit": "submitit"}
 
 
 def _requirements(entries: list[str]) -> dict[str, Requirement]:
@@ -183,3 +184,30 @@ def test_wheel_ships_configs_license_and_ranges(tmp_path):
     lines = res.stdout.split()
     assert lines[0] == str(tmp_path / "site" / "toolkit" / "configs")
     assert Path(lines[1]).read_bytes() == (ROOT / "configs" / "demo.yaml").read_bytes()
+
+
+def test_installing_into_an_environment_with_torch_keeps_its_torch(tmp_path):
+    """``pip install .`` where torch 2.x is already installed resolves against it and installs no torch.
+
+    pip resolves a copy of the project against this environment with no package index at all
+    (``--no-index``, ``--dry-run``): had the declared ranges asked for another torch or numpy, the
+    resolution would fail here. The report lists what pip would install: projo4d alone. (This
+    environment holds the torch of constraints.txt; the declared range accepts every 2.x from 2.4.)
+    """
+    import json
+
+    src = tmp_path / "src"
+    for name in (*PACKAGES, "configs"):
+        shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy2(ROOT / name, src / name)
+    report = tmp_path / "report.json"
+    res = subprocess.run([sys.executable, "-m", "pip", "install", "--dry-run", "--no-index", "--no-build-isolation",
+                          "--quiet", "--report", str(report), str(src)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    installs = {canonicalize_name(item["metadata"]["name"]): item["metadata"]["version"]
+                for item in json.loads(report.read_text())["install"]}
+    assert installs == {"projo4d": PROJECT["version"]}, installs
+    torch_range = DEPENDENCIES["torch"].specifier
+    assert all(torch_range.contains(v) for v in ("2.4.0", "2.6.0", importlib.metadata.version("torch").split("+")[0]))
+    assert not torch_range.contains("3.0.0") and not torch_range.contains("1.13.1")

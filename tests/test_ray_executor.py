@@ -14,7 +14,7 @@ import pytest
 
 pytestmark = pytest.mark.xdist_group("benchmark")  # one Ray cluster at a time (with test_benchmark's)
 
-FN = "tests.ray_helpers:crash_once_job"
+from tests.executor_contract import FN, check_killed_job_rerun, check_raising_job_not_retried, contract_jobs as _jobs, run_contract as _run
 
 
 @pytest.fixture(scope="module")
@@ -29,30 +29,12 @@ def ray_cluster():
         ray.shutdown()
 
 
-def _jobs(tmp_path, n=3, crash=(1,), raises=()):
-    return [{"id": f"j{i}", "kind": "fit", "folder": str(tmp_path / f"j{i}"), "fingerprint": "x", "depends": [],
-             "crash_first": i in crash, "raise": i in raises} for i in range(n)]
-
-
-def _run(jobs, executor):
-    from toolkit.benchmark.runner import run_jobs
-
-    events = []
-    counts = run_jobs(jobs, executor, lambda e, **f: events.append({"event": e, **f}), heartbeat=100, min_start_s=0)
-    return counts, events
-
-
 def test_killed_job_is_retried_and_every_job_finishes(ray_cluster, tmp_path):
     from toolkit.benchmark.runner import RayExecutor
 
     ex = RayExecutor(None, gpus_per_job=0.0, cpus_per_job=1.0, fn=FN, max_retries=2)
     assert ex.capacity == 2 and ex.threads == 1
-    counts, events = _run(_jobs(tmp_path), ex)
-    assert counts == {"done": 3, "failed": 0, "blocked": 0, "remaining": 0, "ran": 3}
-    attempts = {i: int((tmp_path / f"j{i}" / "attempts").read_text()) for i in range(3)}
-    assert attempts == {0: 1, 1: 2, 2: 1}  # j1 was killed once and rerun
-    done = {e["job"]: e for e in events if e["event"] == "done"}
-    assert set(done) == {"j0", "j1", "j2"}
+    check_killed_job_rerun(tmp_path, *_run(_jobs(tmp_path), ex))
 
 
 def test_without_retries_a_killed_job_fails_and_a_raising_job_is_not_retried(ray_cluster, tmp_path):
@@ -65,9 +47,7 @@ def test_without_retries_a_killed_job_fails_and_a_raising_job_is_not_retried(ray
     assert [e["job"] for e in failed] == ["j1"] and "Worker" in failed[0]["error"]  # WorkerCrashedError
     # an exception in the job is a failure of the job, not of the machine: never retried
     ex = RayExecutor(None, gpus_per_job=0.0, cpus_per_job=1.0, fn=FN, max_retries=3)
-    counts, events = _run(_jobs(tmp_path / "raise", n=1, crash=(), raises=(0,)), ex)
-    assert counts["failed"] == 1 and int((tmp_path / "raise" / "j0" / "attempts").read_text()) == 1
-    assert "raises on purpose" in [e for e in events if e["event"] == "failed"][0]["error"]
+    check_raising_job_not_retried(tmp_path / "raise", *_run(_jobs(tmp_path / "raise", n=1, crash=(), raises=(0,)), ex))
 
 
 def test_gpu_resources_one_task_per_gpu(ray_cluster, tmp_path):

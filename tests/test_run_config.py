@@ -230,3 +230,24 @@ def test_fit_default_loggers_and_a_model_checkpoint_beside_ours(fit_input, tmp_p
     assert saved["state_dict"]["v0"].tolist() == pytest.approx([last["v0/x"], last["v0/y"], last["v0/z"]])  # ... its v0
     ours = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert ours["projo4d"]["curriculum_step"] == 4  # and ours is still written (after the uncertainty's prior step)
+
+
+def test_fit_refuses_an_unknown_run_key_and_reads_the_same_file_as_run(fit_input, tmp_path, capsys):
+    """One config file for `fit`, `run` and `stage0`: `fit` checks the `run:` keys the same way (issue #19)."""
+    import yaml
+
+    config = tmp_path / "c.yaml"
+    config.write_text(yaml.safe_dump({"run": {"stage0": "tiny", "stage0_iterations": 5}, "model": {"input_path": str(fit_input)}}))
+    with pytest.raises(SystemExit) as exc:
+        main(["fit", "--config", str(config), "--trainer.accelerator", "cpu", "--trainer.default_root_dir", str(tmp_path / "f")])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1, err
+    assert "run.stage0_iterations" in err and "valid keys:" in err and ", stage0, " in err, err
+    assert not (tmp_path / "f").exists()  # refused before any work
+    # a shipped config's run: section passes fit's check (and is what `projo4d run` reads)
+    from toolkit import find_config
+    from toolkit.run_config import check_run_section, settings_from_sections
+
+    cfg = yaml.safe_load(find_config("synthetic_elastic").read_text())
+    check_run_section(cfg["run"], "synthetic_elastic.yaml")
+    assert settings_from_sections(cfg, "synthetic_elastic.yaml")["stage0"] == cfg["run"]["stage0"]

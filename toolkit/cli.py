@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("toolkit.commands.demo", "run the main job on an embedded synthetic scene (no download)"),
     "fit": ("toolkit.commands.fit", "run the physics stages from a YAML config (LightningCLI; see `projo4d fit --help`)"),
     "run": ("toolkit.commands.run", "the whole pipeline for one scene: stage 0, continuum, strategy, prediction, metrics, report"),
+    "stage0": ("toolkit.commands.stage0", "only stage 0 (4D Gaussians) of a scene into a run folder; a later `run` reuses it"),
     "generate": ("toolkit.synthetic.commands", "write synthetic scenes (PAC-NeRF layout) with honest ground truth"),
     "materials": ("toolkit.commands.info", "list materials, renderers, strategies and effects with their parameters"),
     "evaluate": ("toolkit.commands.evaluate", "re-evaluate a fitted run folder: future prediction, all metrics, report"),

@@ -147,6 +147,35 @@ def _stage0_module(spec, renderer: str, seed: int):
     return Gaussians4DModule.from_preset(preset, schedule={**base, **spec}, **kw)
 
 
+def fit_stage0_step(s: RunSettings, scene, run: Path, timings: dict):
+    """Stage 0 of ``s`` in ``run/stage0``: resumes from its newest intact checkpoint (a finished
+    ``last.ckpt`` is loaded, not trained again), then writes ``gaussians.ply`` (canonical Gaussians
+    at the first training time, 3DGS layout). ``timings["stage0_s"]`` gets the seconds it took.
+
+    Returns:
+        ``(module, views)``: the trained :class:`~toolkit.scene.stage0.Gaussians4DModule` on the
+        run's device in eval mode, and its training views.
+    """
+    from toolkit.scene.export import save_ply
+    from toolkit.scene.stage0 import Stage0DataModule, fit_stage0
+
+    device = _device(s.device)
+    data = Stage0DataModule(scene, cameras=s.cameras, n_train=training_frames(scene, s.n_train), downscale=s.downscale)
+    views = data.training_views()
+    stage0_dir = run / "stage0"
+    t = time.perf_counter()
+    module = _stage0_module(s.stage0, s.renderer, s.seed)
+    every = max(500, module.schedule.iterations // 20)
+    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=newest_intact_checkpoint(stage0_dir), checkpoint_every=every,
+                        accelerator=_accelerator(device), progress_bar=True)
+    for old in stage0_dir.glob("step_*.ckpt"):  # finished: last.ckpt is enough
+        old.unlink()
+    timings["stage0_s"] = time.perf_counter() - t
+    module = module.to(device).eval()
+    save_ply(stage0_dir / "gaussians.ply", module, time=float(views.times[0]))
+    return module, views
+
+
 def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     """Stage 0 + continuum (or the oracle), written as ``run/physics_input.pt``."""
     from toolkit.physics.inputs import PhysicsInput, load_all_images
@@ -174,24 +203,10 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
 
     from toolkit.data import load_scene
     from toolkit.scene.continuum import ContinuumConfig, build_continuum
-    from toolkit.scene.export import save_ply
-    from toolkit.scene.stage0 import Stage0DataModule, fit_stage0
 
     scene = load_scene(s.scene)
-    data = Stage0DataModule(scene, cameras=s.cameras, n_train=training_frames(scene, s.n_train), downscale=s.downscale)
-    views = data.training_views()
-    stage0_dir = run / "stage0"
-    t = time.perf_counter()
-    module = _stage0_module(s.stage0, s.renderer, s.seed)
-    every = max(500, module.schedule.iterations // 20)
-    module = fit_stage0(data, module, out_dir=stage0_dir, ckpt_path=newest_intact_checkpoint(stage0_dir), checkpoint_every=every,
-                        accelerator=_accelerator(device), progress_bar=True)
-    for old in stage0_dir.glob("step_*.ckpt"):  # finished: last.ckpt is enough
-        old.unlink()
-    timings["stage0_s"] = time.perf_counter() - t
-    module = module.to(device).eval()
+    module, views = fit_stage0_step(s, scene, run, timings)
     t0 = float(views.times[0])
-    save_ply(stage0_dir / "gaussians.ply", module, time=t0)
 
     t = time.perf_counter()
     dx = float(s.sim.get("dx", 0.02))

@@ -27,7 +27,8 @@ from typing import Any, Mapping
 
 from toolkit.run_validation import SettingsError
 
-__all__ = ["SECTIONS", "RUN_MODEL_KEYS", "MODULE_OPTIONS", "TRAINER_KEYS", "settings_from_sections", "check_model_options"]
+__all__ = ["SECTIONS", "RUN_MODEL_KEYS", "MODULE_OPTIONS", "TRAINER_KEYS", "settings_from_sections", "check_model_options",
+           "check_run_section"]
 
 #: top-level sections of a config file in the sectioned layout
 SECTIONS = ("run", "model", "trainer")
@@ -104,6 +105,24 @@ def settings_from_sections(cfg: Mapping, path: Any) -> dict:
                                 f"projo4d run supports {', '.join(_ACCELERATOR_DEVICE)} (or set run.device)")
         out["device"] = _ACCELERATOR_DEVICE[accel]
     return out
+
+
+def check_run_section(run: Any, where: Any = "config") -> None:
+    """Check the ``run:`` section of a config where ``projo4d fit`` reads it (it carries the
+    pipeline's settings for ``projo4d run`` and ``projo4d stage0``): a mapping whose keys are
+    :class:`~toolkit.pipeline.RunSettings` fields. The values are checked by ``projo4d run``
+    against its scene; here only the keys, so one file means the same to every command.
+
+    Raises:
+        SettingsError: not a mapping, or an unknown key (named, with the valid keys).
+    """
+    from toolkit.pipeline import RunSettings
+
+    if run is None:
+        return
+    if not isinstance(run, Mapping):
+        raise SettingsError(f"{where}: run", run, "expected a mapping of RunSettings fields")
+    _unknown(f"{where}: run", run, RunSettings.__dataclass_fields__)
 
 
 def _number(name: str, value, low: float, high: float, *, closed_high: bool = True) -> None:

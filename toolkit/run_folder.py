@@ -11,6 +11,13 @@ change results. A later ``projo4d run`` into the same folder
 Settings that do not change results (``out``, ``device``, ``threads``, ``checkpoint_every``,
 ``report_cameras``) are not part of the identity. CPU and GPU runs are not bit-identical, but
 moving a run to another device to finish it is allowed on purpose.
+
+A folder made by ``projo4d stage0`` (stage 0 only) records the scene and only the settings stage 0
+depends on (:data:`STAGE0_SETTINGS`, ``"stage": "stage0"`` in ``run.json``). A later ``projo4d run``
+into it whose stage-0 settings agree takes the folder over (its stage 0 is reused, the full
+identity is recorded); one whose stage-0 settings differ is refused like any other run.
+``projo4d stage0`` into a folder of a whole run checks the stage-0 settings only and leaves the
+run's records alone.
 """
 
 from __future__ import annotations
@@ -25,11 +32,14 @@ from typing import Optional
 from toolkit.atomic import write_json
 from toolkit.run_validation import SettingsError
 
-__all__ = ["RUN_FILE", "scene_fingerprint", "run_identity", "claim_run_folder", "recorded_settings", "RUN_ARTIFACTS"]
+__all__ = ["RUN_FILE", "scene_fingerprint", "run_identity", "claim_run_folder", "recorded_settings", "RUN_ARTIFACTS",
+           "STAGE0_SETTINGS"]
 
 RUN_FILE = "run.json"
 #: settings that never change results (excluded from the identity)
 NEUTRAL_SETTINGS = frozenset({"scene", "out", "device", "threads", "checkpoint_every", "report_cameras"})
+#: the settings stage 0 depends on (the identity of a folder that ran only stage 0)
+STAGE0_SETTINGS = ("cameras", "downscale", "geometry", "n_train", "renderer", "seed", "stage0")
 #: what a run folder may hold (``--overwrite`` removes exactly these)
 RUN_ARTIFACTS = ("run.json", "settings.json", "world.json", "stage0", "continuum", "physics_input.pt", "physics", "evaluation",
                  "report", "summary.json")
@@ -53,14 +63,25 @@ def scene_fingerprint(root: str | Path) -> str:
     return h.hexdigest()
 
 
-def run_identity(settings) -> dict:
-    """The identity of a :class:`~toolkit.pipeline.RunSettings`: scene fingerprint and settings."""
+def run_identity(settings, stage: str = "run") -> dict:
+    """The identity of a :class:`~toolkit.pipeline.RunSettings`: scene fingerprint and settings.
+
+    ``stage="stage0"``: only the :data:`STAGE0_SETTINGS`, marked ``"stage": "stage0"``.
+    """
     d = asdict(settings)
-    return {
+    identity = {
         "scene": str(Path(settings.scene).resolve()),
         "scene_fingerprint": scene_fingerprint(settings.scene),
         "settings": {k: v for k, v in sorted(d.items()) if k not in NEUTRAL_SETTINGS},
     }
+    return _stage0_part(identity) if stage == "stage0" else identity
+
+
+def _stage0_part(identity: dict) -> dict:
+    """``identity`` reduced to the scene and the :data:`STAGE0_SETTINGS`."""
+    settings = identity.get("settings", {})
+    return {"scene": identity.get("scene"), "scene_fingerprint": identity.get("scene_fingerprint"), "stage": "stage0",
+            "settings": {k: settings.get(k) for k in STAGE0_SETTINGS}}
 
 
 def recorded_settings(out: str | Path) -> Optional[dict]:
@@ -88,12 +109,16 @@ def _differences(old: dict, new: dict) -> list[str]:
     return out
 
 
-def claim_run_folder(settings, mode: str = "auto") -> str:
+def claim_run_folder(settings, mode: str = "auto", stage: str = "run") -> str:
     """Check ``settings.out`` against ``settings`` and prepare it; returns ``"new"`` or ``"resume"``.
 
     Args:
         mode: ``"auto"`` (resume the same run, refuse another), ``"resume"`` (there must be a run,
             and the settings must be its own) or ``"overwrite"`` (remove the run that is there).
+        stage: ``"run"`` (the whole pipeline) or ``"stage0"`` (stage 0 only: the identity is the
+            scene and :data:`STAGE0_SETTINGS`; a whole run in the folder is checked on those only
+            and its records are kept). A whole run into a stage-0-only folder compares the stage-0
+            settings and then records its full identity.
 
     Raises:
         SettingsError: the folder holds another run (the message lists what differs and the three
@@ -101,8 +126,10 @@ def claim_run_folder(settings, mode: str = "auto") -> str:
     """
     if mode not in ("auto", "resume", "overwrite"):
         raise SettingsError("mode", mode, "expected 'auto', 'resume' or 'overwrite'")
+    if stage not in ("run", "stage0"):
+        raise SettingsError("stage", stage, "expected 'run' or 'stage0'")
     out = Path(settings.out)
-    identity = run_identity(settings)
+    identity = run_identity(settings, stage)
     run_file = out / RUN_FILE
     occupied = out.is_dir() and any(out.iterdir())
     if occupied and not run_file.is_file():
@@ -119,15 +146,21 @@ def claim_run_folder(settings, mode: str = "auto") -> str:
             old = json.loads(run_file.read_text())
         except (OSError, json.JSONDecodeError) as err:
             raise SettingsError("out", str(out), f"{run_file} is unreadable ({err}); pass --overwrite to start again") from None
-        diff = _differences(old, identity)
+        partial = stage == "stage0" or old.get("stage") == "stage0"
+        diff = _differences(_stage0_part(old), _stage0_part(identity)) if partial else _differences(old, identity)
         if diff and mode != "overwrite":
             head = "; ".join(diff[:4]) + (f"; and {len(diff) - 4} more" if len(diff) > 4 else "")
-            raise SettingsError("out", str(out), f"this folder holds another run ({head}). To continue that run use "
-                                                 f"`projo4d run --resume --out {out}`, to replace it add --overwrite, "
+            what = "stage 0 (run with other stage-0 settings)" if partial else "run"
+            raise SettingsError("out", str(out), f"this folder holds another {what} ({head}). To continue that run use "
+                                                 f"`projo4d {stage} --resume --out {out}`, to replace it add --overwrite, "
                                                  f"or choose another --out")
         if not diff:
             for tmp in out.rglob(".*.tmp*"):  # what a SIGKILL left mid-write (never read: writes are atomic)
                 tmp.unlink(missing_ok=True)
+            if stage == "stage0" and old.get("stage") != "stage0":
+                return "resume"  # stage 0 of a whole run: its records stay
+            if old.get("stage") == "stage0" and stage == "run":
+                write_json(run_file, identity)  # the whole run takes the stage-0 folder over
             write_json(out / "settings.json", asdict(settings))
             return "resume"
     if occupied and mode == "overwrite":

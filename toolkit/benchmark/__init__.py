@@ -6,8 +6,12 @@
 
 * :mod:`toolkit.benchmark.plan`: scenes x camera counts x strategies as jobs; stage 0 runs once
   per scene and camera set and every strategy fits from the same ``physics_input.pt``;
-* :mod:`toolkit.benchmark.runner`: local worker processes (one per GPU) or Ray, time limits,
-  resume;
+* :mod:`toolkit.benchmark.runner`: :func:`run_benchmark`, the whole command (estimates, run,
+  tables, export);
+* :mod:`toolkit.benchmark.scheduler`: dependencies, priorities, time limits, resume;
+* :mod:`toolkit.benchmark.executors`: the executor interface; local worker processes (one per
+  GPU) and inline; :mod:`toolkit.benchmark.ray_executor` (Ray) and
+  :mod:`toolkit.benchmark.slurm` (SLURM through submitit);
 * :mod:`toolkit.benchmark.jobs`: what a worker does with one job;
 * :mod:`toolkit.benchmark.tables`: per-material mean ± std tables (Markdown and JSON);
 * :mod:`toolkit.benchmark.plots`: trajectories, per-frame errors and image strips per strategy;

@@ -102,12 +102,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
     run = parser.add_argument_group("execution")
     run.add_argument("--out", type=Path, help="benchmark folder (default bench/<suite or first scene name>)")
-    run.add_argument("--executor", choices=["local", "ray", "inline"], default="local")
-    run.add_argument("--workers", type=int, help="worker processes (default: GPUs x --jobs-per-gpu; 1 on a CPU)")
+    run.add_argument("--executor", choices=["local", "ray", "slurm", "inline"], default="local",
+                     help="local processes (default), Ray tasks (--ray-address), SLURM jobs through submitit "
+                          "(--slurm-*) or one at a time in this process")
+    run.add_argument("--workers", type=int, help="worker processes (default: GPUs x --jobs-per-gpu; 1 on a CPU); "
+                                                 "with --executor slurm: jobs queued at a time (default 32)")
     run.add_argument("--gpus", type=_gpus, help="GPU ids '0,1,2' or a count '4' (default: every visible GPU)")
     run.add_argument("--jobs-per-gpu", type=int, default=1, help="jobs sharing one GPU (default 1)")
     run.add_argument("--threads", type=int, help="torch threads per worker (default: CPU cores / workers)")
     run.add_argument("--ray-address", help="Ray cluster address for --executor ray ('auto' = a running cluster)")
+    slurm = parser.add_argument_group("SLURM (--executor slurm; pip install 'projo4d[slurm]')")
+    slurm.add_argument("--slurm-partition", help="partition of the jobs (default: the cluster's default)")
+    slurm.add_argument("--slurm-time", type=int, default=240, metavar="MINUTES",
+                       help="time limit of each job; a job that reaches it is requeued and resumes (default 240)")
+    slurm.add_argument("--slurm-gpus", type=int, default=1, metavar="N", help="GPUs per job (0: CPU jobs; default 1)")
+    slurm.add_argument("--slurm-mem-gb", type=float, metavar="GB", help="memory per job (default: the partition's)")
+    slurm.add_argument("--slurm-retries", type=int, default=2, metavar="N",
+                       help="requeues of a preempted or timed-out job, resubmissions of one that died (default 2)")
+    slurm.add_argument("--slurm-options", type=json_arg, default=None, metavar="JSON",
+                       help='more submitit parameters, e.g. \'{"slurm_account": "proj", "slurm_qos": "normal"}\'')
+    slurm.add_argument("--slurm-cluster", choices=["slurm", "local"], default="slurm",
+                       help="'local' runs the jobs as local processes through submitit (a dry run without SLURM)")
     run.add_argument("--time-limit", type=float, metavar="SECONDS", help="return within this many seconds (jobs resume later)")
     run.add_argument("--grace", type=float, default=45.0, help="seconds between asking jobs to stop and the limit")
     run.add_argument("--retry-failed", action="store_true", help="run failed jobs again")
@@ -186,6 +201,8 @@ def _generation_device(args: argparse.Namespace) -> str:
 
         wp.init()
         return "cuda:0" if wp.is_cuda_available() else "cpu"
+    if args.executor == "slurm":  # the jobs run on the cluster's nodes, each with its own GPU(s)
+        return "cuda:0" if args.slurm_gpus > 0 else "cpu"
     from toolkit.benchmark.runner import _visible_gpus
 
     return "cuda:0" if (args.gpus or _visible_gpus()) else "cpu"
@@ -212,10 +229,20 @@ def run(args: argparse.Namespace) -> int:
                                time_limit=args.time_limit, grace=args.grace, retry_failed=args.retry_failed,
                                redo_changed=args.redo_changed, dry_run=args.dry_run,
                                export=str(args.export) if args.export else None, figures=not args.no_figures,
-                               heartbeat=args.heartbeat, estimate_for=args.estimate_for)
+                               heartbeat=args.heartbeat, estimate_for=args.estimate_for, slurm=_slurm_args(args))
     except BenchmarkError as err:
         raise SystemExit(f"projo4d benchmark: {err}") from None
     return 0 if result["complete"] or args.dry_run else 3
+
+
+def _slurm_args(args: argparse.Namespace) -> dict:
+    """:class:`~toolkit.benchmark.slurm.SubmititExecutor` arguments of the ``--slurm-*`` flags."""
+    out = {"cluster": args.slurm_cluster, "time_min": args.slurm_time, "gpus_per_job": args.slurm_gpus,
+           "max_retries": args.slurm_retries, "partition": args.slurm_partition, "mem_gb": args.slurm_mem_gb,
+           "options": args.slurm_options}
+    if args.workers:
+        out["max_jobs"] = args.workers
+    return out
 
 
 def _tables_only(args: argparse.Namespace) -> int:

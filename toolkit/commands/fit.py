@@ -47,7 +47,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     class PhysicsCLI(LightningCLI):
         def add_arguments_to_parser(self, parser) -> None:
             # configs/ files carry a `run:` section for `projo4d run` (stage 0, cameras, split)
-            parser.add_argument("--run", type=Optional[dict], default=None, help="pipeline settings (used by `projo4d run`)")
+            parser.add_argument("--run", type=Optional[dict], default=None,
+                                help="pipeline settings (used by `projo4d run` and `projo4d stage0`; keys are RunSettings "
+                                     "fields, unknown keys are errors)")
+
+        def before_instantiate_classes(self) -> None:
+            from toolkit.run_config import check_run_section
+
+            check_run_section(self._get(self.config, "run"), "projo4d fit")
 
         def instantiate_trainer(self, **kwargs):
             from pytorch_lightning.callbacks import ModelCheckpoint

@@ -89,7 +89,9 @@ def settings_from_sections(cfg: dict, path) -> dict:
     return from_sections(cfg, path)
 
 
-def settings_from_args(args: argparse.Namespace):
+def settings_from_args(args: argparse.Namespace, command: str = "run"):
+    """The :class:`~toolkit.pipeline.RunSettings` of ``projo4d run`` (or ``stage0``, which takes the
+    same arguments: ``command`` names it in messages): the config file, then the flags over it."""
     from toolkit.pipeline import RunSettings
 
     base: dict = {}
@@ -97,10 +99,10 @@ def settings_from_args(args: argparse.Namespace):
         import yaml
 
         if not args.config.is_file():
-            raise SystemExit(f"projo4d run: config file {args.config} does not exist")
+            raise SystemExit(f"projo4d {command}: config file {args.config} does not exist")
         base = yaml.safe_load(args.config.read_text()) or {}
         if not isinstance(base, dict):
-            raise SystemExit(f"projo4d run: {args.config} must hold a mapping of RunSettings fields")
+            raise SystemExit(f"projo4d {command}: {args.config} must hold a mapping of RunSettings fields")
         if {"model", "run", "trainer"} & set(base):
             base = settings_from_sections(base, args.config)
         unknown = sorted(set(base) - set(RunSettings.__dataclass_fields__))
