@@ -27,6 +27,7 @@ import torch
 
 from toolkit.atomic import CorruptArtifactError, set_aside, write_json
 from toolkit.checkpointing import newest_intact_checkpoint
+from toolkit.errors import UserError
 
 __all__ = ["RunSettings", "run_pipeline", "load_fitted_module"]
 
@@ -176,6 +177,24 @@ def fit_stage0_step(s: RunSettings, scene, run: Path, timings: dict):
     return module, views
 
 
+class EmptyContinuumError(UserError):
+    """Stage 0's Gaussians gave the continuum no particles (no interior voxel in the first frame)."""
+
+
+def empty_continuum_message(run: Path, n_views: int) -> str:
+    """What went wrong when the continuum is empty, with stage 0's last logged quality and the fix."""
+    from toolkit.stage0_only import last_logged_metrics
+
+    logged = last_logged_metrics(run / "stage0" / "logs")
+    psnr, count = logged.get("train/psnr"), logged.get("train/n_gaussians")
+    quality = (f"stage 0 ended at PSNR {psnr:.1f} dB" if psnr is not None else "stage 0 logged no PSNR") + (
+        f" with {int(count)} Gaussians" if count is not None else "")
+    return (f"the continuum found no particles: no voxel of the first frame is inside the object (the Gaussians' "
+            f"density, carved by the masks of the {n_views} training views); {quality} ({run / 'stage0' / 'logs'}). Usually stage 0 has not converged: train it "
+            "longer (run.stage0 'full' or more iterations, then --overwrite); else check the training cameras' masks "
+            "and run.continuum (density_min)")
+
+
 def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     """Stage 0 + continuum (or the oracle), written as ``run/physics_input.pt``."""
     from toolkit.physics.inputs import PhysicsInput, load_all_images
@@ -216,6 +235,8 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     cont.save(run / "continuum")
     timings["continuum_s"] = time.perf_counter() - t
     log.info(cont.summary())
+    if cont.particles.shape[0] == 0:
+        raise EmptyContinuumError(empty_continuum_message(run, len(views.camera_indices)))
     with torch.no_grad():
         g0 = module.gaussians_at(t0).detach()
     g0 = g0.to("cpu")
