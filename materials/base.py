@@ -25,7 +25,7 @@ from typing import Any, ClassVar, Literal, Mapping
 import numpy as np
 import torch
 
-__all__ = ["MaterialParam", "Material", "MaterialError", "lame_parameters"]
+__all__ = ["MaterialParam", "Material", "MaterialError", "lame_parameters", "default_lr", "LOG10_LR", "RANGE_FRACTION_LR"]
 
 Transform = Literal["log10", "tanh", "linear"]
 
@@ -46,9 +46,14 @@ class MaterialParam:
             value must be > low, normally 0); otherwise both ends are inclusive. For ``tanh``
             parameters the range is also the tanh bound.
         optimize: whether the parameter is optimized by default.
-        lr: Adam learning rate in the raw (transformed) space.
+        lr: Adam learning rate in the raw (transformed) space. ``None`` (the default) applies the
+            scale-free rule :func:`default_lr`: 0.1 decade for ``log10`` parameters, 1 % of the
+            valid range for bounded (``tanh``, finite ``linear``) ones, so no scene needs hand-set rates.
         units: physical units, for reports.
         description: one line for docs and ``projo4d materials``.
+        search: physical ``(low, high)`` range of the coarse global search run before gradient
+            descent (:mod:`toolkit.physics.coarse_search`); ``None``: not searched (the fit
+            starts at the guess).
     """
 
     name: str
@@ -57,9 +62,20 @@ class MaterialParam:
     low: float = 0.0
     high: float = math.inf
     optimize: bool = True
-    lr: float = 0.1
+    lr: float | None = None
     units: str = ""
     description: str = ""
+    search: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.lr is None:
+            object.__setattr__(self, "lr", default_lr(self.transform, self.low, self.high))
+        if self.search is not None:
+            lo, hi = (float(v) for v in self.search)
+            if not lo < hi:
+                raise MaterialError(f"{self.name}: search range {self.search!r} must be (low, high) with low < high")
+            self.check(lo)
+            self.check(hi)
 
     def check(self, value: float, material: str = "") -> None:
         """Raise :class:`MaterialError` if ``value`` is outside the valid range."""
@@ -98,6 +114,27 @@ class MaterialParam:
             r = self.high - self.low
             return (r / 2) * torch.tanh(2 * raw / r) + self.low + r / 2
         return raw
+
+
+#: Adam step of ``log10`` parameters, decades per iteration (the scale-free rule of :func:`default_lr`)
+LOG10_LR = 0.1
+#: Adam step of bounded parameters as a fraction of their valid range (:func:`default_lr`)
+RANGE_FRACTION_LR = 0.01
+
+
+def default_lr(transform: str, low: float, high: float) -> float:
+    """The scale-free learning rate of a parameter in its raw (optimized) space.
+
+    ``log10``: :data:`LOG10_LR` decades per step whatever the parameter's magnitude (a soft
+    jelly and a stiff rubber take the same relative steps); ``tanh`` and bounded ``linear``:
+    :data:`RANGE_FRACTION_LR` of the valid range ``high - low`` (the tanh raw space has the
+    physical units near the middle of the range); an unbounded ``linear`` parameter: 0.01.
+    """
+    if transform == "log10":
+        return LOG10_LR
+    if math.isfinite(high - low):
+        return RANGE_FRACTION_LR * (high - low)
+    return 0.01
 
 
 def lame_parameters(E: float, nu: float) -> tuple[float, float]:

@@ -14,10 +14,10 @@ __all__ = ["NeoHookean", "YOUNGS_MODULUS", "POISSON_RATIO", "MIN_VOLUME_RATIO"]
 MIN_VOLUME_RATIO = 1.0e-4
 
 YOUNGS_MODULUS = MaterialParam(
-    "E", 10**5.5, "log10", low=0.0, high=1e12, lr=0.1, units="Pa", description="Young's modulus"
+    "E", 10**5.5, "log10", low=0.0, high=1e12, units="Pa", description="Young's modulus", search=(10**3.5, 10**6.5)
 )
 POISSON_RATIO = MaterialParam(
-    "nu", 0.25, "tanh", low=-0.99, high=0.49, lr=0.01, description="Poisson's ratio (tanh-bounded)"
+    "nu", 0.25, "tanh", low=-0.99, high=0.49, description="Poisson's ratio (tanh-bounded)", search=(0.05, 0.45)
 )
 
 

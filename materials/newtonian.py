@@ -13,8 +13,10 @@ __all__ = ["Newtonian", "VISCOSITY", "BULK_MODULUS", "MIN_FLUID_VOLUME_RATIO"]
 #: the tracked volume ratio J is clamped at this value (DESIGN 4).
 MIN_FLUID_VOLUME_RATIO = 0.05
 
-VISCOSITY = MaterialParam("mu", 10.0, "log10", low=0.0, high=1e9, lr=0.15, units="Pa s", description="dynamic viscosity")
-BULK_MODULUS = MaterialParam("kappa", 1e4, "log10", low=0.0, high=1e12, lr=0.2, units="Pa", description="bulk modulus")
+VISCOSITY = MaterialParam("mu", 10.0, "log10", low=0.0, high=1e9, units="Pa s", description="dynamic viscosity",
+                          search=(10**-1.5, 10**2.5))
+BULK_MODULUS = MaterialParam("kappa", 1e4, "log10", low=0.0, high=1e12, units="Pa", description="bulk modulus",
+                             search=(1e3, 1e6))
 
 
 @wp.func

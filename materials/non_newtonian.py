@@ -50,10 +50,14 @@ class NonNewtonian(Material):
     """
 
     params = (
-        MaterialParam("mu", 100.0, "log10", low=0.0, high=1e9, lr=0.15, units="Pa", description="shear modulus"),
-        MaterialParam("kappa", 1e5, "log10", low=0.0, high=1e12, lr=0.2, units="Pa", description="bulk modulus"),
-        MaterialParam("yield_stress", 10.0, "log10", low=0.0, high=1e9, lr=0.1, units="Pa", description="yield stress tau_Y"),
-        MaterialParam("plastic_viscosity", 1.0, "log10", low=0.0, high=1e9, lr=0.1, units="Pa s", description="plastic viscosity eta"),
+        MaterialParam("mu", 100.0, "log10", low=0.0, high=1e9, units="Pa", description="shear modulus",
+                      search=(10**1.5, 10**4.5)),
+        MaterialParam("kappa", 1e5, "log10", low=0.0, high=1e12, units="Pa", description="bulk modulus",
+                      search=(10**3.5, 10**6.5)),
+        MaterialParam("yield_stress", 10.0, "log10", low=0.0, high=1e9, units="Pa", description="yield stress tau_Y",
+                      search=(10**0.5, 10**3.5)),
+        MaterialParam("plastic_viscosity", 1.0, "log10", low=0.0, high=1e9, units="Pa s",
+                      description="plastic viscosity eta", search=(10**-1.5, 10**1.5)),
     )
     uses_svd = True
 

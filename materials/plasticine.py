@@ -47,9 +47,11 @@ class Plasticine(Material):
     """
 
     params = (
-        MaterialParam("E", 1e4, "log10", low=0.0, high=1e12, lr=0.5, units="Pa", description="Young's modulus"),
+        MaterialParam("E", 1e4, "log10", low=0.0, high=1e12, units="Pa", description="Young's modulus",
+                      search=(10**3.5, 10**6.5)),
         POISSON_RATIO,
-        MaterialParam("yield_stress", 1e3, "log10", low=0.0, high=1e12, lr=0.1, units="Pa", description="yield stress tau_Y"),
+        MaterialParam("yield_stress", 1e3, "log10", low=0.0, high=1e12, units="Pa", description="yield stress tau_Y",
+                      search=(10**1.5, 10**4.5)),
     )
     uses_svd = True
     option_defaults = {"yield_rule": "gic"}

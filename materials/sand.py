@@ -50,11 +50,12 @@ class Sand(Material):
 
     params = (
         MaterialParam(
-            "friction_angle", 10.0, "linear", low=0.0, high=89.0, lr=1.0, units="deg", description="friction angle phi"
+            "friction_angle", 10.0, "linear", low=0.0, high=89.0, units="deg", description="friction angle phi",
+            search=(10.0, 50.0),
         ),
-        MaterialParam("E", 1e6, "log10", low=0.0, high=1e12, optimize=False, lr=0.1, units="Pa", description="Young's modulus"),
+        MaterialParam("E", 1e6, "log10", low=0.0, high=1e12, optimize=False, units="Pa", description="Young's modulus"),
         MaterialParam(
-            "nu", 0.3, "tanh", low=POISSON_RATIO.low, high=POISSON_RATIO.high, optimize=False, lr=0.01,
+            "nu", 0.3, "tanh", low=POISSON_RATIO.low, high=POISSON_RATIO.high, optimize=False,
             description="Poisson's ratio",
         ),
     )

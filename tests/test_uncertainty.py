@@ -46,8 +46,10 @@ def test_frictionless_slide_leaves_E_undetermined_and_v0_on_the_ground(slide_inp
     """Issue #24's puck at CPU size: a soft box (E = 3e4) set down on a slip ground and pushed
     sideways does not deform, so E stays near its initial guess (the GIC default, 10^5.5) and is
     labelled not determined; v0 has no component along the ground normal; the horizontal
-    components are determined and their 90 % intervals contain the truth."""
-    m, est = _fit(slide_input, slide_sim(), tmp_path, initial_params={"nu": SLIDE_TRUTH["nu"]})
+    components are determined and their 90 % intervals contain the truth. The coarse search is off
+    (``material_init="given"``) so E starts at the GIC default: with it on, the image loss's 5 %
+    preference picks E = 1.8e4 and the MAP prior step then moves the undetermined E to 1.6e5."""
+    m, est = _fit(slide_input, slide_sim(), tmp_path, initial_params={"nu": SLIDE_TRUTH["nu"]}, material_init="given")
     assert m.contact_normal == (0.0, 1.0, 0.0)
     assert est["v0"][1] == 0.0  # exactly: projected after every step
     unc = est["uncertainty"]["parameters"]

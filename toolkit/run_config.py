@@ -8,7 +8,7 @@ Nothing is dropped: every key is either carried or refused.
 * ``model:`` -- any :class:`~toolkit.physics.InversePhysicsModule` argument except
   ``input_path`` (the pipeline writes the physics input). The arguments RunSettings has fields for
   (:data:`RUN_MODEL_KEYS`) go to those fields; the others (:data:`MODULE_OPTIONS`: ``effects``,
-  ``v0_init``, ``lambda_image``, ``ssim_weight``, ``warmup_fraction``, ``embedding_neighbours``)
+  ``v0_init``, ``material_init``, ``lambda_image``, ``ssim_weight``, ``warmup_fraction``, ``embedding_neighbours``)
   go to ``RunSettings.model_options`` and on to the module unchanged.
 * ``trainer:`` -- the Trainer keys that mean something for a whole run (:data:`TRAINER_KEYS`):
   ``accelerator`` (``auto``/``cpu``/``gpu``/``cuda``) becomes ``device`` unless ``run:`` sets it;
@@ -36,7 +36,8 @@ SECTIONS = ("run", "model", "trainer")
 RUN_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_params", "curriculum", "sim",
                   "lambda_geometry", "learning_rates", "renderer", "seed", "optimize_gravity")
 #: the other InversePhysicsModule arguments, carried in ``RunSettings.model_options``
-MODULE_OPTIONS = ("effects", "v0_init", "lambda_image", "ssim_weight", "warmup_fraction", "embedding_neighbours")
+MODULE_OPTIONS = ("effects", "v0_init", "material_init", "lambda_image", "ssim_weight", "warmup_fraction",
+                  "embedding_neighbours")
 #: ``trainer:`` keys ``projo4d run`` accepts and the RunSettings field each sets (None: accepted, not used)
 TRAINER_KEYS = {"accelerator": "device", "default_root_dir": None}
 #: Lightning accelerator -> RunSettings.device
@@ -138,7 +139,7 @@ def check_model_options(options: Any) -> None:
 
     Valid keys are :data:`MODULE_OPTIONS`: ``effects`` ``{effect: {param: value}}`` (registered
     effects, values in each parameter's range), ``v0_init`` (3 numbers, m/s, canonical frame, or
-    ``"auto"``/``"zero"``),
+    ``"auto"``/``"zero"``), ``material_init`` (``"search"`` or ``"given"``),
     ``lambda_image`` (>= 0 or None: ``1 / cameras``), ``ssim_weight`` in [0, 1],
     ``warmup_fraction`` in [0, 1), ``embedding_neighbours`` (integer >= 1).
 
@@ -156,6 +157,9 @@ def check_model_options(options: Any) -> None:
     if v0 is not None and v0 not in ("auto", "zero") and not (isinstance(v0, (list, tuple)) and len(v0) == 3 and all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in v0)):
         raise SettingsError("model_options.v0_init", v0, "expected 3 finite numbers (m/s, canonical frame), 'auto' or 'zero'")
+    if options.get("material_init", "search") not in ("search", "given"):
+        raise SettingsError("model_options.material_init", options["material_init"],
+                            "expected 'search' (coarse search before gradient descent) or 'given' (start at the guesses)")
     if options.get("lambda_image") is not None:
         _number("lambda_image", options["lambda_image"], 0.0, math.inf)
     if "ssim_weight" in options:

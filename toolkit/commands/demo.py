@@ -27,8 +27,7 @@ DEMO_SCENE = dict(
 )
 #: the run settings (toolkit.pipeline.RunSettings fields; mirrors configs/demo.yaml)
 DEMO_RUN = dict(
-    cameras="sparse", stage0="tiny", material="neo_hookean", initial_params={"E": 1e4, "nu": 0.3}, optimize_params=["E"],
-    curriculum="XAS:30@3/3x3,XASM:60/3x7", learning_rates={"velocity": 0.1, "E": 0.1},
+    cameras="sparse", stage0="tiny", material="neo_hookean", curriculum="XAS:25@3/3x3,XASM:40/3x7",
     sim={"dx": 0.02, "substeps": 40, "auto_dt_halving": True},
 )
 

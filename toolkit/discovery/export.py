@@ -63,7 +63,8 @@ def module_with_effect(refit: Refit):
     new = InversePhysicsModule(
         m.input, material=material, material_options=hp.get("material_options") if isinstance(material, str) and name != "plastic_yield" else None,
         initial_params=params, optimize_params=optimize, effects=effects, curriculum=hp.get("curriculum", "progressive"),
-        renderer=m.renderer_name, sim=m.sim_config, v0_init=phys["v0"], optimize_gravity=m.optimize_gravity,
+        renderer=m.renderer_name, sim=m.sim_config, v0_init=phys["v0"], material_init="given",  # continues the fit
+        optimize_gravity=m.optimize_gravity,
         lambda_image=m.lambda_image, lambda_geometry=m.lambda_geometry, ssim_weight=m.ssim_weight,
         learning_rates=hp.get("learning_rates"), warmup_fraction=m.warmup_fraction, seed=m.seed,
         embedding_neighbours=hp.get("embedding_neighbours", 8),

@@ -52,7 +52,8 @@ __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
 log = logging.getLogger(__name__)
 
-#: Adam learning rates of the non-material parameters (material ones come from MaterialParam.lr).
+#: Adam learning rates of the non-material parameters (material ones come from MaterialParam.lr; the
+#: velocity's default is replaced by :func:`toolkit.physics.rates.velocity_rate` of the observed motion).
 DEFAULT_LEARNING_RATES = {
     "positions": 2e-4,  # m, X (3DGS position lr at a ~1 m scene)
     "colors": 2.5e-3,
@@ -103,12 +104,20 @@ class InversePhysicsModule(pl.LightningModule):
             (default) estimates it from the stage-0 surfaces by a ballistic fit of the centroid over
             the frames before ground contact (:mod:`toolkit.physics.initial_velocity`; zero when too
             few such frames); ``"zero"`` starts from zero. The estimate is kept in ``v0_estimate``.
+        material_init: ``"search"`` (default): at the first iteration that optimizes ``M``, a
+            coarse global search of the optimized material parameters
+            (:mod:`toolkit.physics.coarse_search`) picks where gradient descent starts (the given or
+            default guess is one candidate; the record is kept in ``material_search`` and written to
+            ``material_search.json`` in the trainer's folder); ``"given"``: start at
+            ``initial_params`` / the material's defaults.
         optimize_gravity: put gravity in ``S`` too.
         lambda_image: weight of the image term per camera; default ``1 / |C|``.
         lambda_geometry: weight of the geometric term.
         ssim_weight: lambda of ``(1 - lambda) L1 + lambda (1 - SSIM)``.
         learning_rates: overrides of :data:`DEFAULT_LEARNING_RATES` and of material parameters'
-            rates (keys: ``positions``, ``colors``, ..., or a material parameter name).
+            rates (keys: ``positions``, ``colors``, ..., or a material parameter name). By default
+            v0's rate follows the observed motion and material rates follow their transforms
+            (:mod:`toolkit.physics.rates`), so no scene needs hand-set rates.
         warmup_fraction: warm-up part of each group's cosine schedule.
         seed: seed of the batch sampling.
         embedding_neighbours: particles each Gaussian follows.
@@ -126,6 +135,7 @@ class InversePhysicsModule(pl.LightningModule):
         renderer: str = "auto",
         sim: Optional[SimConfig] = None,
         v0_init: Optional[Union[list[float], str]] = None,
+        material_init: str = "search",
         optimize_gravity: bool = False,
         lambda_image: Optional[float] = None,
         lambda_geometry: float = 1.0,
@@ -161,11 +171,20 @@ class InversePhysicsModule(pl.LightningModule):
             sim=cfg.to_dict(),
         )
         self.effect_init = dict(effects or {})
+        if material_init not in ("search", "given"):
+            raise ValueError(f"material_init must be 'search' or 'given', got {material_init!r}")
+        self.material_init = material_init
+        #: the coarse search's record (``toolkit.physics.coarse_search``), None until it ran
+        self.material_search: Optional[dict] = None
         self.optimize_gravity = optimize_gravity
         self.lambda_image = lambda_image if lambda_image is not None else 1.0 / len(inp.train_cameras)
         self.lambda_geometry = lambda_geometry
         self.ssim_weight = ssim_weight
-        self.lrs = {**DEFAULT_LEARNING_RATES, **(learning_rates or {})}
+        from toolkit.physics.rates import velocity_rate
+
+        # v0's rate scales with the observed motion (toolkit.physics.rates); a user's rates win
+        self.lrs = {**DEFAULT_LEARNING_RATES, "velocity": velocity_rate(inp.surfaces, inp.frame_dt, inp.n_train),
+                    **(learning_rates or {})}
         self.warmup_fraction = warmup_fraction
         self.seed = seed
         self.curriculum_step = 0
@@ -376,6 +395,7 @@ class InversePhysicsModule(pl.LightningModule):
             "grid": None if self._sim is None or self._sim.grid is None else self._sim.grid.__dict__,
             "substeps_floor": self._restored_substeps_floor if self._sim is None else self._sim.substeps_floor,
             "uncertainty": self.uncertainty_result,
+            "material_search": self.material_search,
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
@@ -385,6 +405,7 @@ class InversePhysicsModule(pl.LightningModule):
         self._restored_grid = state.get("grid")
         self._restored_substeps_floor = int(state.get("substeps_floor", 0))
         self.uncertainty_result = state.get("uncertainty")
+        self.material_search = state.get("material_search")
         self._sim = None
         saved = state.get("curriculum")
         unnamed = lambda stages: [{k: v for k, v in d.items() if k != "name"} for d in stages]  # noqa: E731
@@ -399,6 +420,12 @@ class InversePhysicsModule(pl.LightningModule):
         at = self.curriculum.stage_at(step, self.material.registry_name or None)
         stage = at.stage
         cams, frames = self._sample(stage, step)
+        key = self.material.registry_name or None
+        if "M" in stage.groups and self.material_init == "search" and self.curriculum.group_progress("M", step, key) == 0:
+            from toolkit.physics.coarse_search import search_and_apply
+
+            folder = getattr(self._trainer, "default_root_dir", None) if self._trainer is not None else None
+            self.material_search = search_and_apply(self, stage, folder)
         opts = self.optimizers()
         for o in opts:
             o.zero_grad(set_to_none=True)
