@@ -26,6 +26,15 @@ Usage::
     python benchmarks/discovery.py --report-only --calibrate --out D                    #   calibrate (writes D/thresholds.json),
     python benchmarks/discovery.py --shard 0/4 --out D                                  #   then the hidden scenes, 4 processes
     python benchmarks/discovery.py --report-only --out outputs/discovery --update-docs    # merge and tabulate
+    python benchmarks/discovery.py --geometry stage0 --calibrate --out outputs/discovery_images   # from images
+
+From images (``--geometry stage0``): each scene's geometry comes from stage 0 + the continuum
+(:mod:`toolkit.discovery.from_images`; schedule ``--stage0``, default
+``STAGE0_SCHEDULES[size]``), built once per scene in ``OUT/runs/SCENE/images`` (resumable, shared
+by every candidate), the base fit holds the positions still, and discovery carries stage 0's
+floor. Null scenes of the same geometry must calibrate the thresholds (``--calibrate``): the
+shipped ones come from oracle scenes. Per scene the JSON line adds ``geometry``, the tied
+candidates' ``separation`` (the observation that would separate them), ``joint`` and ``floors``.
 
 Expected cost (measured): the CPU smoke run (22 tiny scenes) takes about 15 minutes on 2 cores.
 A full-size scene (about 400 particles) is launch-bound, not compute-bound: with 16 processes
@@ -58,9 +67,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLS = ("density", "camera_pose")
 DOCS_PAGE = ROOT / "docs" / "tutorials" / "discovery.md"
-#: the docs page's benchmark sections, one per run size (``--small`` or not)
-MARKS = {True: ("<!-- benchmark-small:start -->", "<!-- benchmark-small:end -->"),
-         False: ("<!-- benchmark-full:start -->", "<!-- benchmark-full:end -->")}
+#: the docs page's benchmark sections, one per run size (``--small`` or not) and geometry
+MARKS = {(True, "oracle"): ("<!-- benchmark-small:start -->", "<!-- benchmark-small:end -->"),
+         (False, "oracle"): ("<!-- benchmark-full:start -->", "<!-- benchmark-full:end -->"),
+         (True, "stage0"): ("<!-- benchmark-images-small:start -->", "<!-- benchmark-images-small:end -->"),
+         (False, "stage0"): ("<!-- benchmark-images-full:start -->", "<!-- benchmark-images-full:end -->")}
 
 
 def build_suite(args):
@@ -86,12 +97,25 @@ def run_scene(hs, args, thresholds) -> dict:
     t0 = time.time()
     root = hs.generate(out / "scenes" / hs.name, device=args.device)
     t_gen = time.time() - t0
-    inp = hs.physics_input(root)
     run = out / "runs" / hs.name
+    accel = "gpu" if args.device.startswith("cuda") else "cpu"
+    t0 = time.time()
+    if args.geometry == "stage0":
+        from toolkit.discovery.from_images import fit_base_from_images, stage0_physics_input
+
+        # stage 0 + continuum in RUN/images (resumable, shared by every candidate); the input with
+        # the scene's observation errors applied is RUN/physics_input.pt
+        inp = stage0_physics_input(hs, root, run / "images", stage0=_stage0_arg(args.stage0) if args.stage0 else None,
+                                   device=args.device)
+    else:
+        inp = hs.physics_input(root)
+    t_stage0 = time.time() - t0
     inp.save(run / "physics_input.pt")
     t0 = time.time()
-    accel = "gpu" if args.device.startswith("cuda") else "cpu"
-    module = fit_base(inp, run / "physics", material=hs.material, size=hs.size, accelerator=accel)
+    if args.geometry == "stage0":
+        module = fit_base_from_images(inp, run / "physics", hs, accelerator=accel)
+    else:
+        module = fit_base(inp, run / "physics", material=hs.material, size=hs.size, accelerator=accel)
     t_fit = time.time() - t0
     t0 = time.time()
     res = discover(module, run / "discovery", thresholds=thresholds, top_k=args.top_k, report=not args.no_reports)
@@ -102,15 +126,18 @@ def run_scene(hs, args, thresholds) -> dict:
     errors = {k: abs(final[k] - v) for k, v in truth.items() if k in final} if res.decision == hs.expected else {}
     order = _order(d)
     rec = {
-        "scene": hs.name, "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
+        "scene": hs.name, "geometry": args.geometry, "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
         "expected": hs.expected, "decision": res.decision, "kind": res.decision_kind, "indistinguishable": res.indistinguishable,
+        "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence")} for d in res.separation],
+        "joint": res.joint, "floors": res.floors, "noise": res.noise,
+        "single_camera": res.localization.single_camera if res.localization.single_camera in inp.train_cameras else None,
         "correct": res.decision == hs.expected, "top3": order[:3], "cd_before": res.gap.get("cd_future_before"),
         "cd_after": res.gap.get("cd_future_after"), "cd_truth_effect": res.gap.get("cd_future_truth_effect"),
         "cd_shrink": res.gap.get("cd_shrink"), "psnr_before": res.gap.get("psnr_future_before"),
         "psnr_after": res.gap.get("psnr_future_after"), "strengths": final, "truth_strengths": truth, "strength_errors": errors,
         "validation": d["validation"], "dofs": {s["name"]: s["dof"] for s in d["ranking"]["scores"]},
         "scores": {s["name"]: s["score"] for s in d["ranking"]["scores"]},
-        "seconds": {"generate": t_gen, "fit": t_fit, "discover": t_disc, **res.seconds},
+        "seconds": {"generate": t_gen, "stage0": t_stage0, "fit": t_fit, "discover": t_disc, **res.seconds},
     }
     del module, res
     if args.device.startswith("cuda"):
@@ -145,11 +172,10 @@ def _clean(x):
 
 def summarize(records: list[dict], thresholds) -> dict:
     from toolkit.discovery.calibration import calibrate, null_statistics
-    from toolkit.discovery.workflow import decide
 
     nulls = [r for r in records if r["effect"] == "none"]
     hidden = [r for r in records if r["effect"] != "none"]
-    out: dict = {"n_scenes": len(records), "n_null": len(nulls), "n_hidden": len(hidden), "thresholds": thresholds.to_dict()}
+    out: dict = {"geometry": sorted({r.get("geometry", "oracle") for r in records}), "n_scenes": len(records), "n_null": len(nulls), "n_hidden": len(hidden), "thresholds": thresholds.to_dict()}
     # false positives: with the thresholds used, and 2-fold cross-calibrated
     out["false_positive_rate"] = float(np.mean([r["decision"] is not None for r in nulls])) if nulls else None
     if len(nulls) >= 2:
@@ -157,7 +183,7 @@ def summarize(records: list[dict], thresholds) -> dict:
         fp = []
         for a, b in ((0, 1), (1, 0)):
             thr = calibrate([null_statistics({"validation": r["validation"]}) for r in halves[a]])
-            fp += [decide(r["validation"], r["dofs"], thr)[0] is not None for r in halves[b]]
+            fp += [_decide(r, thr)[0] is not None for r in halves[b]]
         out["false_positive_rate_cross"] = float(np.mean(fp))
     if hidden:
         out["top1"] = float(np.mean([r["correct"] for r in hidden]))
@@ -252,9 +278,21 @@ def _truth(v: dict, k: str) -> str:
     return "-" if t is None else f"{t:.3g}"
 
 
-def update_docs(table: str, small: bool) -> None:
-    """Replace the page's section of this run size with ``table``."""
-    start, end = MARKS[small]
+def _decide(rec: dict, thr):
+    """The decision of a stored record under thresholds ``thr`` (noise and single camera when recorded)."""
+    from toolkit.discovery.workflow import decide
+
+    return decide(rec["validation"], rec["dofs"], thr, noise=rec.get("noise"), single_camera=rec.get("single_camera"))
+
+
+def _stage0_arg(text: str):
+    """``--stage0``: a preset name or JSON of Stage0Schedule fields."""
+    return json.loads(text) if text.strip().startswith("{") else text
+
+
+def update_docs(table: str, small: bool, geometry: str = "oracle") -> None:
+    """Replace the page's section of this run size and geometry with ``table``."""
+    start, end = MARKS[(small, geometry)]
     text = DOCS_PAGE.read_text()
     if start not in text or end not in text:
         raise SystemExit(f"{DOCS_PAGE} has no benchmark markers {start} ... {end}")
@@ -268,6 +306,12 @@ def main(argv=None) -> int:
     p.add_argument("--small", action="store_true", help="CPU smoke run: tiny scenes, each effect once at high strength, 12 null scenes")
     p.add_argument("--out", default="outputs/discovery_benchmark")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--geometry", choices=["oracle", "stage0"], default="oracle",
+                   help="oracle: the physics starts from the true body (positions fitted for tiny scenes, fixed for full); "
+                        "stage0: from images, stage 0 + continuum per scene, positions held still")
+    p.add_argument("--stage0", default=None,
+                   help="stage-0 schedule with --geometry stage0: 'tiny', 'full' or JSON of Stage0Schedule fields "
+                        "(default: toolkit.discovery.from_images.STAGE0_SCHEDULES of the scene size)")
     p.add_argument("--levels", nargs="+", default=["medium", "high"])
     p.add_argument("--materials", nargs="+", default=["neo_hookean", "plasticine"])
     p.add_argument("--throws", nargs="+", default=["slide", "toss"])
@@ -361,23 +405,24 @@ def main(argv=None) -> int:
     if not records:
         return 0
     # decisions are re-derived with the final thresholds (the stored statistics do not depend on them)
-    from toolkit.discovery.workflow import decide
 
     for r in records:
         runtime = r["decision"]
-        r["decision"], r["kind"], r["indistinguishable"] = decide(r["validation"], r["dofs"], thresholds)
+        r["decision"], r["kind"], r["indistinguishable"] = _decide(r, thresholds)
         r["correct"] = r["decision"] == r["expected"]
         if r["decision"] != runtime:  # the refit behind the gap numbers was another candidate's
             r["cd_shrink"] = None
     summary = summarize(records, thresholds)
     title = "CPU smoke run (`--small`, tiny scenes)" if args.small else "GPU run (full-size scenes)"
+    if args.geometry == "stage0":
+        title += f", from images (stage-0 geometry `{args.stage0 or 'STAGE0_SCHEDULES'}`, positions held still)"
     table = markdown(summary, title)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     (out / "discovery_benchmark.md").write_text(table)
     print(json.dumps({"summary": summary}), flush=True)
     print(table)
     if args.update_docs:
-        update_docs(table, args.small)
+        update_docs(table, args.small, args.geometry)
     return 0
 
 

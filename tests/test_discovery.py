@@ -201,7 +201,8 @@ def test_thresholds_calibration_and_decision_rule(tmp_path):
              {"validation": {"base": v(0.0), "timing": v(-0.02), "camera_pose": v(0.002, 0.5, True)}},  # not reported anyway
              {"validation": {"base": v(0.0), "camera_pose": v(0.2, 0.5, True, worst=-0.3)}}]  # hurts a component: idem
     stats = [null_statistics(n) for n in nulls]
-    assert stats[0] == {"validation": 0.01, "fit": 0.01, "camera": 0.03, "camera_validation": 0.03, "camera_worst": 0.0}
+    assert stats[0] == {"validation": 0.01, "fit": 0.01, "camera": 0.03, "camera_validation": 0.03, "camera_worst": 0.0,
+                        "camera_concentration": 0.0}
     thr = calibrate(stats)
     assert thr.validation == pytest.approx(1.25 * 0.01 + 0.01) and thr.camera == pytest.approx(1.25 * 0.03 + 0.05)
     assert Thresholds.load(thr.save(tmp_path / "t.json")) == thr

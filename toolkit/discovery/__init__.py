@@ -13,6 +13,10 @@ Modules, one job each:
 * :mod:`~toolkit.discovery.residuals`: localization (regions, phases, rigid/non-rigid, cameras);
 * :mod:`~toolkit.discovery.ranking`: projected score test at zero strength, wall and yield searches;
 * :mod:`~toolkit.discovery.confirm`: Levenberg-Marquardt refits of the top candidates;
+* :mod:`~toolkit.discovery.selection`: held-out criterion, per-parameter penalty, ties within noise;
+* :mod:`~toolkit.discovery.separation`: the observation that would separate tied candidates;
+* :mod:`~toolkit.discovery.joint`: candidates absorbed by an undetermined base parameter, refitted jointly;
+* :mod:`~toolkit.discovery.camera`: the camera-pose control narrowed to one camera;
 * :mod:`~toolkit.discovery.calibration`: decision thresholds calibrated on null scenes;
 * :mod:`~toolkit.discovery.gap`: future-frame metrics before and after;
 * :mod:`~toolkit.discovery.workflow`: :func:`discover` and :class:`DiscoveryResult`;
@@ -20,6 +24,7 @@ Modules, one job each:
 * :mod:`~toolkit.discovery.report`: Markdown/HTML report with figures;
 * :mod:`~toolkit.discovery.loading`: a fitted module from a run folder;
 * :mod:`~toolkit.discovery.hidden`: scenes with a hidden effect (tests, benchmark);
+* :mod:`~toolkit.discovery.from_images`: their geometry from stage 0, held still in the physics;
 * :mod:`~toolkit.discovery.commands`: ``projo4d discover RUN_DIR``.
 """
 

@@ -19,11 +19,13 @@ and give ``None``.
 from __future__ import annotations
 
 import logging
+from typing import Optional
+
 import torch
 
 from toolkit.discovery.confirm import Refit
 
-__all__ = ["module_with_effect", "EXPRESSIBLE"]
+__all__ = ["module_with_effect", "EXPRESSIBLE", "config_of", "save_config"]
 
 log = logging.getLogger(__name__)
 
@@ -92,3 +94,77 @@ def _wall_slot(lib) -> int:
     """Position of the active wall among the library's non-base effects."""
     names = [e.registry_name for e in lib.effects[len(lib._base_effects):]]
     return names.index("wall") + lib.wall_index
+
+
+def config_of(refit: Refit, verdict: str = "") -> Optional[dict]:
+    """The discovered model as a run config (the ``run:`` / ``model:`` / ``trainer:`` layout of
+    :mod:`toolkit.run_config`), or ``None`` for a candidate a config cannot express
+    (:data:`EXPRESSIBLE` less ``internal_damping``, whose material is not registered by name).
+
+    ``model:`` carries the material, the refitted material parameters and initial velocity as
+    starting values (``initial_params``, ``v0_init``), the discovered effect with its refitted
+    strength (``effects``), the base module's curriculum (as a schedule string), simulator settings
+and loss weights;
+    ``run:`` the fitting cameras and training frames. ``projo4d run --config`` replays the whole
+    pipeline with it (stage 0 makes the geometry again), ``projo4d fit --config`` the physics
+    stages on a run's ``physics_input.pt``. Not carried: the refit's rigid shift of the body
+    (``shift``, metres; the geometry comes from the run) and any ``comment`` (``verdict`` is
+    returned under the key ``_comment`` for the YAML header and removed before writing).
+    """
+    import dataclasses
+
+    new = module_with_effect(refit)
+    if new is None or refit.name == "internal_damping":
+        return None
+    m = refit.lib.module
+    est = new.estimate()
+    material = new.material.registry_name
+    hp = dict(new.hparams)
+    from toolkit.mpm import SimConfig
+
+    # the settings that differ from the defaults; frame_dt and particle_volume come from the input,
+    # gravity from the scene's world
+    default = dataclasses.asdict(SimConfig())
+    sim = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(m.sim_config).items()
+           if k not in ("frame_dt", "particle_volume", "gravity") and v != default.get(k)}
+    effects = {e: {k: float(v) for k, v in vals.items()} for e, vals in est.get("effects", {}).items()}
+    model = {"material": material, "initial_params": {k: float(v) for k, v in est["params"].items()},
+             "optimize_params": list(new.optimized_material),
+             "curriculum": m.curriculum.schedule_string(m.material.registry_name or None),
+             "sim": sim, "lambda_geometry": float(m.lambda_geometry), "optimize_gravity": bool(m.optimize_gravity),
+             "effects": effects, "v0_init": [float(v) for v in new.v0.detach().cpu().tolist()],
+             "ssim_weight": float(m.ssim_weight)}
+    if hp.get("material_options") and refit.name != "plastic_yield":
+        model["material_options"] = dict(hp["material_options"])
+    if hp.get("learning_rates"):
+        model["learning_rates"] = dict(hp["learning_rates"])
+    inp = m.input
+    run = {"cameras": [int(c) for c in inp.train_cameras], "n_train": int(inp.n_train)}
+    return {"run": run, "model": model, "trainer": {"accelerator": "auto"}, "_comment": verdict}
+
+
+def save_config(refit: Refit, path, verdict: str = ""):
+    """Write :func:`config_of` as YAML to ``path`` (returns the path, or ``None`` when the
+    candidate has no config form)."""
+    from pathlib import Path
+
+    import yaml
+
+    cfg = config_of(refit, verdict)
+    if cfg is None:
+        return None
+    comment = cfg.pop("_comment", "")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    head = "# discovered model (projo4d discover): replay with\n#   projo4d run --config THIS SCENE_DIR --out RUN_DIR\n" \
+           "#   projo4d fit --config THIS --model.input_path RUN_DIR/physics_input.pt\n"
+    if comment:
+        head += "".join(f"# {line}\n" for line in _wrap(comment))
+    path.write_text(head + yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def _wrap(text: str, width: int = 110) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width)

@@ -210,11 +210,18 @@ class HiddenScene:
         """The oracle :class:`~toolkit.physics.PhysicsInput` of the scene at ``root``, with the
         observation errors of ``timing`` and ``camera_pose`` applied and the hidden truth stored
         in ``ground_truth["hidden_effect"]``."""
-        from toolkit.cameras import Cameras
         from toolkit.physics.oracle import oracle_input
 
         spacing = particle_spacing or SIZES[self.size]["fit"]["particle_spacing"]
-        inp = oracle_input(root, particle_spacing=spacing)
+        return self.observe(oracle_input(root, particle_spacing=spacing))
+
+    def observe(self, inp):
+        """Apply the scene's observation errors (``timing``: the input claims 24 fps;
+        ``camera_pose``: a fitted camera's centre is moved) to a physics input ``inp`` of its
+        images (oracle or stage 0), and store the hidden truth in
+        ``ground_truth["hidden_effect"]``; returns ``inp`` (changed in place)."""
+        from toolkit.cameras import Cameras
+
         if self.effect == "timing":
             inp.times = torch.arange(inp.n_frames, dtype=torch.float32) / 24.0
         if self.effect == "camera_pose":

@@ -251,7 +251,7 @@ def rank_candidates(lib: LibraryModel, q0: Optional[np.ndarray] = None, plastic_
     scores.sort(key=lambda s: -s.score)
     for i, s in enumerate(scores):
         s.rank = i + 1
-    state.update(J_theta=J_theta, Q=Q)
+    state.update(J_theta=J_theta, Q=Q, beta=beta, strengths=strengths, grad=grad)
     return Ranking(scores, L0, L_base, overlaps, time.time() - t0), state
 
 

@@ -182,6 +182,14 @@ def _blocks(result, figures: dict[str, str]) -> list[tuple[str, Any]]:
     b.append(("table", (list(RANKING_COLUMNS), ranking_rows(result))))
     if result.indistinguishable:
         b.append(("p", f"Cannot be told apart from the decision on these data: {', '.join(result.indistinguishable)}."))
+    for d in getattr(result, "separation", []):
+        b.append(("p", f"To separate {d['candidates'][0]} from {d['candidates'][1]}: {d['sentence']}"))
+    if getattr(result, "joint", None):
+        b.append(("p", "Confirmed because a base parameter the clip does not determine absorbed the score test (refitted "
+                       "jointly): " + ", ".join(f"{c} with {u}" for c, u in result.joint.items()) + "."))
+    if getattr(result, "floors", None):
+        b.append(("p", "Stage-0 geometric uncertainty carried as a floor under the held-out losses (the base model's loss at "
+                       "frame 0): " + ", ".join(f"{k} {v:.3g}" for k, v in result.floors.items()) + "."))
     b.append(("h2", "3. The gap before and after"))
     g = result.gap
     rows = []

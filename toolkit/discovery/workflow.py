@@ -12,10 +12,16 @@ The steps (each in its own module):
    control), on the refit frames; each is scored on data the refits did not use: the held-out
    cameras on the refit frames, every camera and the stage-0 surfaces on the held-out training
    frames.
-4. **Decide** (:mod:`~toolkit.discovery.calibration`): a physics candidate is discovered when
-   its validation and training improvements over the control pass thresholds calibrated on
-   null scenes; candidates within noise of the winner are reported as indistinguishable; a
-   camera-pose error (a control) is reported as an observation problem, never as physics.
+4. **Decide** (:mod:`~toolkit.discovery.selection`, :mod:`~toolkit.discovery.calibration`): a
+   physics candidate is discovered when its validation improvement over the control, less a
+   penalty per extra strength parameter, and its training improvement pass thresholds
+   calibrated on null scenes; candidates within the criterion's noise of the winner are all
+   named, with the observation that would separate them
+   (:mod:`~toolkit.discovery.separation`); a camera-pose error (a control, narrowed to one
+   camera by :mod:`~toolkit.discovery.camera`) is reported as an observation problem, never as
+   physics. With a stage-0 geometry the validation losses carry stage 0's floor
+   (:mod:`~toolkit.discovery.from_images`); candidates whose score test an undetermined base
+   parameter absorbed are confirmed too (:mod:`~toolkit.discovery.joint`).
 5. **Add and show the gap** (:mod:`~toolkit.discovery.gap`): the winner is refitted on every
    training frame; future-frame Chamfer/EMD/PSNR and the held-out-camera loss before and
    after (and for the true effect, when the scene's ground truth names one).
@@ -41,6 +47,7 @@ from toolkit.discovery.gap import evaluate_state, gap_shrink, ground_truth_cloud
 from toolkit.discovery.library import LibraryModel
 from toolkit.discovery.ranking import Ranking, rank_candidates
 from toolkit.discovery.residuals import Localization, localize
+from toolkit.discovery.selection import criterion_noise, decide, passes, penalized, relative_improvements, validation_components
 
 __all__ = ["DiscoveryResult", "discover", "decide", "truth_from_ground_truth", "validation_components"]
 
@@ -73,6 +80,14 @@ class DiscoveryResult:
         truth: the hidden effect from the ground truth (``candidate``, ``strengths``), if known.
         holdout_frames: the training frames held out from the confirmation refits.
         seconds: wall-clock time per step.
+        floors: stage 0's geometric uncertainty per validation component (empty for an oracle
+            geometry; :func:`toolkit.discovery.from_images.geometry_floor`).
+        separation: per candidate tied with the decision, the observation that would separate
+            them (:func:`toolkit.discovery.separation.separating_observation`).
+        joint: candidates confirmed because an undetermined base parameter absorbed their score
+            test, and that parameter (:mod:`toolkit.discovery.joint`).
+        noise: ``{a: {b: standard error}}`` of the difference of two refits' validation
+            improvements (:func:`toolkit.discovery.selection.criterion_noise`).
         lib, plastic_lib: the library models (not serialized).
     """
 
@@ -93,6 +108,10 @@ class DiscoveryResult:
     truth: Optional[dict]
     holdout_frames: list[int]
     seconds: dict[str, float] = field(default_factory=dict)
+    floors: dict[str, float] = field(default_factory=dict)
+    separation: list[dict] = field(default_factory=list)
+    joint: dict[str, str] = field(default_factory=dict)
+    noise: dict[str, dict[str, float]] = field(default_factory=dict)
     lib: Optional[LibraryModel] = field(default=None, repr=False)
     plastic_lib: Optional[LibraryModel] = field(default=None, repr=False)
 
@@ -113,6 +132,8 @@ class DiscoveryResult:
             "truth_refit": None if self.truth_refit is None else self.truth_refit.to_dict(), "metrics": self.metrics,
             "gap": self.gap, "params": self.params, "thresholds": self.thresholds.to_dict(), "truth": self.truth,
             "identified": self.identified, "holdout_frames": self.holdout_frames, "seconds": self.seconds,
+            "floors": self.floors, "separation": self.separation, "joint": self.joint,
+            "noise": self.noise,
         }
         return _clean(d)
 
@@ -182,41 +203,17 @@ def truth_from_ground_truth(gt: Optional[dict], base_material: str) -> Optional[
     return None
 
 
-def validation_components(lib: LibraryModel, q: np.ndarray, val_frames: Sequence[int]) -> dict[str, float]:
-    """The validation losses of a refit: ``held_out_cameras`` (image loss of the held-out
-    cameras on the refit frames), ``held_out_frames`` (image loss of every camera on
-    ``val_frames``) and ``held_out_surfaces`` (Chamfer to the stage-0 surfaces on ``val_frames``)."""
-    from toolkit.metrics.geometry import chamfer_loss
-
-    inp = lib.input
-    out: dict[str, float] = {}
-    if inp.held_out_cameras:
-        out["held_out_cameras"] = float(lib.image_losses(q, lib.fit_frames, inp.held_out_cameras).mean())
-    if val_frames:
-        out["held_out_frames"] = float(lib.image_losses(q, val_frames, list(range(len(inp.cameras)))).mean())
-        if lib.module.lambda_geometry > 0:
-            x0, pos = lib.trajectory(q, val_frames)
-            vals = [float(chamfer_loss(pos[k][lib.module.surface_index], inp.surfaces[f].to(pos.device)))
-                    for k, f in enumerate(val_frames) if len(inp.surfaces[f])]
-            if vals:
-                out["held_out_surfaces"] = float(np.mean(vals))
-    return out
-
-
-def _relative(base: dict[str, float], cand: dict[str, float]) -> dict[str, float]:
-    return {k: (base[k] - cand[k]) / base[k] if base[k] > 0 else 0.0 for k in base if k in cand}
-
-
 def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Optional[Sequence[str]] = None, top_k: int = 4,
              holdout_frames: Optional[int] = None, refit_iterations: int = 8, final_iterations: int = 12,
              thresholds: Union[Thresholds, str, Path, None] = None, report: bool = True, emd: bool = True,
-             device: Optional[str] = None) -> DiscoveryResult:
+             device: Optional[str] = None, geometry_floor: Optional[bool] = None) -> DiscoveryResult:
     """Find, name and add the missing effect of a fitted base model.
 
     Args:
         source: a fitted :class:`~toolkit.physics.InversePhysicsModule`, or a run folder
             (``physics_input.pt`` + ``physics/checkpoints/last.ckpt``).
-        out_dir: where ``discovery.json``, ``report.md``, ``report.html`` and the figures go
+        out_dir: where ``discovery.json``, ``report.md``, ``report.html``, the figures and, for a
+            physics decision, ``discovered.yaml`` (:func:`toolkit.discovery.export.save_config`) go
             (nothing is written when ``None``).
         candidates: candidate names (default: the whole library).
         top_k: candidates confirmed by refits, best ranked first; searched candidates (wall,
@@ -230,6 +227,9 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
         report: write the Markdown/HTML report (with ``out_dir``).
         emd: compute the EMD in the before/after metrics.
         device: device for a module loaded from a run folder.
+        geometry_floor: carry stage 0's geometric uncertainty as a floor under the validation
+            losses (:func:`toolkit.discovery.from_images.geometry_floor`); default: when the
+            input's geometry comes from stage 0 (``input.meta["source"] == "stage0"``).
 
     Returns:
         The :class:`DiscoveryResult`.
@@ -259,6 +259,11 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     lib = LibraryModel(module, candidates)
     lib.calibrate_geometry_weight(lib.q0)
     loc = localize(lib)
+    floors = None
+    if geometry_floor if geometry_floor is not None else (inp.meta or {}).get("source") == "stage0":
+        from toolkit.discovery.from_images import geometry_floor as _floor
+
+        floors = _floor(lib, lib.q0, list(inp.held_out_cameras), list(range(len(inp.cameras))))
     seconds["localize"] = time.time() - t
     log.info("localization: %s", loc.summary)
 
@@ -285,13 +290,33 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     # a searched candidate's score only sees the base trajectory (a wall it does not reach
     # scores zero): any searched candidate with a positive score is confirmed as well
     chosen += [s for s in ranking.scores if s.search is not None and s.score > 0 and s not in chosen]
+    # a score test made inconclusive by a base parameter the clip does not determine: refit jointly
+    from toolkit.discovery.joint import absorbed_candidates, undetermined_base
+
+    undetermined = undetermined_base(getattr(module, "uncertainty_result", None), lib.base_names)
+    joint = absorbed_candidates(ranking, state, lib, undetermined, [s.name for s in chosen])
+    chosen += [ranking.get(n) for n in joint]
     for s in chosen:
         refits[s.name] = _refit_candidate(lib, plib, state, s, refits["base"], refit_iterations)
+    if "camera_pose" in refits:  # narrowed to the one camera that carries the improvement
+        from toolkit.discovery.camera import single_camera_refit
+
+        refits["camera_pose"] = single_camera_refit(lib, refits["base"], refits["camera_pose"], refit_iterations)
     seconds["confirm"] = time.time() - t
-    validation = _validate(lib, refits, val_frames, ranking, thr)
+    validation, noise = _validate(lib, refits, val_frames, ranking, thr, floors)
 
     # ------------------------------------------------------------------ 4. decide
-    decision, kind, indist = decide(validation, {sc.name: sc.dof for sc in ranking.scores}, thr)
+    decision, kind, indist = decide(validation, {sc.name: sc.dof for sc in ranking.scores}, thr, noise=noise,
+                                    single_camera=loc.single_camera if loc.single_camera in inp.train_cameras else None)
+    separation = []
+    if kind == "physics":
+        from toolkit.discovery.separation import separating_observation
+
+        for other in indist:
+            try:
+                separation.append(separating_observation(refits[decision], refits[other]))
+            except Exception as exc:  # the advice must not break the discovery
+                log.warning("separating %s from %s failed: %s", decision, other, exc)
 
     # ------------------------------------------------------------------ 5. add the effect, evaluate
     t = time.time()
@@ -326,16 +351,24 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     params = {"before": lib.physical(lib.q0), "after": None if final is None else final.lib.physical(final.q)}
     if inp.ground_truth and inp.ground_truth.get("params"):
         params["truth"] = {"params": inp.ground_truth.get("params"), "v0": inp.ground_truth.get("v0")}
-    verdict = _verdict(decision, kind, indist, final, gap, validation, loc)
+    verdict = _verdict(decision, kind, indist, final, gap, validation, loc, separation, refits)
     seconds["total"] = time.time() - t_start
     result = DiscoveryResult(verdict=verdict, decision=decision, decision_kind=kind, indistinguishable=indist, localization=loc,
                              ranking=ranking, refits=refits, validation=validation, final=final, truth_refit=truth_refit,
                              metrics=metrics, gap=gap, params=params, thresholds=thr, truth=truth, holdout_frames=val_frames,
-                             seconds=seconds, lib=lib, plastic_lib=plib)
+                             seconds=seconds, lib=lib, plastic_lib=plib, floors=floors or {}, separation=separation,
+                             joint=joint, noise=noise)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         result.save(out / "discovery.json")
+        if kind == "physics" and final is not None:
+            from toolkit.discovery.export import save_config
+
+            try:  # the discovered model as a config `projo4d run/fit --config` replays
+                save_config(final, out / "discovered.yaml", verdict)
+            except Exception as exc:  # pragma: no cover - the config must not break the discovery
+                log.warning("could not write %s: %s", out / "discovered.yaml", exc)
         if report:
             from toolkit.discovery.report import write_report
 
@@ -399,50 +432,33 @@ def _final_refit(lib: LibraryModel, plib: Optional[LibraryModel], state: dict, n
     return rf
 
 
-def _validate(lib: LibraryModel, refits: dict[str, Refit], val_frames: list[int], ranking: Ranking, thr: Thresholds) -> dict:
-    comps = {name: validation_components(rf.lib or lib, rf.q, val_frames) for name, rf in refits.items()}
+def _validate(lib: LibraryModel, refits: dict[str, Refit], val_frames: list[int], ranking: Ranking, thr: Thresholds,
+              floors: Optional[dict[str, float]] = None) -> tuple[dict, dict]:
+    """Validation statistics per refit (see :mod:`toolkit.discovery.selection`) and the criterion
+    noise ``{a: {b: standard error}}`` between the refits."""
+    cells: dict[str, dict] = {name: {} for name in refits}
+    comps = {name: validation_components(rf.lib or lib, rf.q, val_frames, cells=cells[name]) for name, rf in refits.items()}
     base = comps["base"]
     out: dict[str, dict] = {}
     for name, rf in refits.items():
-        rel = _relative(base, comps[name])
+        # the stage-0 floor is what no force can change at frame 0; a camera pose changes frame 0 too
+        rel = relative_improvements(base, comps[name], None if name == "camera_pose" else floors)
         fit = (refits["base"].objective - rf.objective) / max(refits["base"].objective, 1e-30)
         control = name != "base" and ranking.get(name).control
+        dof = 0 if name == "base" else ranking.get(name).dof
         mean = float(np.mean(list(rel.values()))) if rel else 0.0
         worst = float(min(rel.values())) if rel else 0.0
-        passed = _passes(name, {"control": control, "validation": mean, "fit": fit, "worst": worst}, thr)
+        v = {"control": control, "validation": mean, "fit": fit, "worst": worst, "dof": dof}
+        if name == "camera_pose" and rf.extra and "concentration" in rf.extra:
+            v["concentration"] = float(rf.extra["concentration"])
         actual = (refits["base"].objective - rf.objective) / max(ranking.objective, 1e-30)
         out[name] = {"components": comps[name], "relative": rel, "validation": mean, "worst": worst, "fit": float(fit),
-                     "actual_drop": float(actual),
-                     "control": bool(control), "passed": bool(passed)}
-    return out
-
-
-def decide(validation: dict, dofs: dict[str, int], thr: Thresholds) -> tuple[Optional[str], str, list[str]]:
-    """``(decision, kind, indistinguishable)`` from the confirmation's validation statistics
-    (:attr:`DiscoveryResult.validation`), the candidates' numbers of strength parameters and the
-    thresholds, with the ``passed`` flags recomputed for ``thr``.
-
-    The decision rule (see :mod:`toolkit.discovery.calibration`): among the candidates that
-    pass, those within noise of the best validation improvement (``max(threshold, 20 %)`` of it)
-    cannot be told apart; of those the one with the fewest strength parameters is chosen
-    (parsimony), then the best validation."""
-    passing = [n for n, v in validation.items() if _passes(n, v, thr)]
-    if passing:
-        best = max(validation[n]["validation"] for n in passing)
-        tol = max(thr.validation, 0.2 * best)
-        tied = [n for n in passing if best - validation[n]["validation"] < tol]
-        win = min(tied, key=lambda n: (dofs.get(n, 1), -validation[n]["validation"]))
-        return win, "physics", sorted((n for n in tied if n != win), key=lambda n: -validation[n]["validation"])
-    cam = validation.get("camera_pose")
-    if (cam is not None and cam["fit"] > thr.camera and cam["validation"] > thr.validation
-            and cam["worst"] > -thr.max_worsening):
-        return "camera_pose", "observation", []
-    return None, "none", []
-
-
-def _passes(name: str, v: dict, thr: Thresholds) -> bool:
-    return (name != "base" and not v["control"] and v["validation"] > thr.validation and v["fit"] > thr.fit
-            and v["worst"] > -thr.max_worsening)
+                     "dof": dof, "penalized": penalized(mean, dof, thr.per_parameter), "actual_drop": float(actual),
+                     "control": bool(control), "passed": bool(passes(name, v, thr)),
+                     **({"concentration": v["concentration"]} if "concentration" in v else {})}
+    names = [n for n in refits if n != "base"]
+    noise = {a: {b: criterion_noise(cells, a, b, floors=floors) for b in names if b != a} for a in names}
+    return out, noise
 
 
 def _gap(metrics: dict) -> dict:
@@ -460,16 +476,20 @@ def _gap(metrics: dict) -> dict:
     return out
 
 
-def _verdict(decision, kind, indist, final, gap, validation, loc) -> str:
+def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(), refits=None) -> str:
     if decision is None:
         return ("No missing effect: no candidate improves the held-out data beyond what the null-scene calibration allows"
                 + (f" ({loc.summary})." if loc.first_departure is not None else "."))
     if kind == "observation":
-        return (f"The disagreement points at the observation, not the physics: a camera-pose error of a fitted camera "
+        from toolkit.discovery.camera import camera_shift_text
+
+        where = camera_shift_text((refits or {}).get(decision), loc)
+        return (f"The disagreement points at the observation, not the physics: a camera-pose error{where} "
                 f"explains it (training objective -{100 * validation[decision]['fit']:.0f} %).")
     s = ", ".join(f"{k.split('.', 1)[1]} = {v:.3g}" for k, v in (final.strengths if final else {}).items())
     extra = f" (cannot be told apart from {', '.join(indist)})" if indist else ""
     shrink = gap.get("cd_shrink")
     tail = f"; the future Chamfer gap shrinks by {100 * shrink:.0f} %" if shrink is not None else ""
+    sep = "".join(f" To separate {d['candidates'][0]} from {d['candidates'][1]}: {d['sentence']}" for d in separation)
     return (f"Missing effect: {decision} ({s}){extra}, improving the held-out data by "
-            f"{100 * validation[decision]['validation']:.0f} %{tail}.")
+            f"{100 * validation[decision]['validation']:.0f} %{tail}.{sep}")
