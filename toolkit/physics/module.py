@@ -28,10 +28,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 from typing import Any, Optional, Sequence, Union
 
-import numpy as np
 import pytorch_lightning as pl
 import torch
 from torch import nn
@@ -47,6 +45,8 @@ from toolkit.mpm import MPMSimulator, SimConfig
 from toolkit.physics.contact import ground_contact_normal, project_off_ground
 from toolkit.physics.embedding import carry, embed
 from toolkit.physics.inputs import PhysicsInput
+from toolkit.physics.prediction import PredictionMixin
+from toolkit.physics.starting_state import StepStream, cosine_with_warmup, initial_v0, surface_particles
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -65,26 +65,7 @@ DEFAULT_LEARNING_RATES = {
 }
 
 
-def cosine_with_warmup(k: int, total: int, warmup_fraction: float = 0.1, floor: float = 0.01) -> float:
-    """LR multiplier at the k-th active iteration of ``total``: linear warm-up, cosine decay to ``floor``."""
-    if total <= 1:
-        return 1.0
-    warm = max(1, int(round(warmup_fraction * total)))
-    if k < warm:
-        return (k + 1) / warm
-    t = (k - warm) / max(1, total - warm)
-    return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
-
-
-class _StepStream(torch.utils.data.IterableDataset):
-    """An endless stream of placeholders: the module samples its own batches from the strategy."""
-
-    def __iter__(self):
-        while True:
-            yield 0
-
-
-class InversePhysicsModule(pl.LightningModule):
+class InversePhysicsModule(PredictionMixin, pl.LightningModule):
     """Fit positions, appearance, initial velocity and material to multi-view video.
 
     Args:
@@ -205,7 +186,7 @@ class InversePhysicsModule(pl.LightningModule):
         self.register_buffer("embed_index", index)
         self.register_buffer("embed_weight", weight)
         # simulated particles compared with the stage-0 surface: those near it at frame 0
-        self.register_buffer("surface_index", self._surface_particles(inp))
+        self.register_buffer("surface_index", surface_particles(inp))
         # ---------------------------------------------------------- A: appearance
         g = inp.gaussians
         self.log_scales = nn.Parameter(g.log_scales.float().clone())
@@ -219,8 +200,12 @@ class InversePhysicsModule(pl.LightningModule):
             self.sh = None
         # ---------------------------------------------------------- S: initial state
         #: the stage-0 estimate of v0 (``V0Estimate.to_dict()``), None when not estimated or not estimable
-        self.v0_estimate: Optional[dict] = None
-        self.v0 = nn.Parameter(torch.tensor(self._initial_v0(v0_init, inp, cfg), dtype=torch.float32))
+        start = initial_v0(v0_init, inp, cfg)
+        if start.hparam is not None:
+            self.hparams["v0_init"] = start.hparam[0]  # None or 3 numbers (a resume re-estimates the same)
+        #: the stage-0 ballistic estimate v0 started from (``None`` when it did not)
+        self.v0_estimate: Optional[dict] = start.estimate
+        self.v0 = nn.Parameter(torch.tensor(start.v0, dtype=torch.float32))
         # resting on a sticky/slip ground at frame 0: v0 has no normal component (issue #24, toolkit.physics.contact)
         self.contact_normal = ground_contact_normal(inp.particles, cfg, inp.surfaces)
         project_off_ground(self.v0.data, self.contact_normal)
@@ -258,45 +243,6 @@ class InversePhysicsModule(pl.LightningModule):
         self._ground_truth = inp.ground_truth or {}
 
     # ------------------------------------------------------------------ helpers
-    def _initial_v0(self, v0_init, inp: PhysicsInput, cfg: SimConfig) -> list[float]:
-        """v0 to start from (m/s): explicit, zero, or the stage-0 ballistic estimate (see ``v0_init``)."""
-        if v0_init is None or (isinstance(v0_init, str) and v0_init == "auto"):
-            from toolkit.physics.initial_velocity import initial_velocity_from_input
-
-            self.hparams["v0_init"] = None  # hparams hold None or 3 numbers (resumes re-estimate the same)
-            est = initial_velocity_from_input(inp, cfg)
-            if est is None:
-                log.info("v0 starts at zero: fewer than 3 stage-0 frames before ground contact to estimate it from")
-                return [0.0, 0.0, 0.0]
-            self.v0_estimate = est.to_dict()
-            log.info("v0 starts at the stage-0 estimate (%.3f, %.3f, %.3f) m/s (%s fit over frames %s, rms %.2g m; %s)",
-                     *est.v0, est.method, est.frames, est.rms_residual, est.stop_reason)
-            return list(est.v0)
-        if isinstance(v0_init, str):
-            if v0_init == "zero":
-                self.hparams["v0_init"] = [0.0, 0.0, 0.0]
-                return [0.0, 0.0, 0.0]
-            raise ValueError(f"v0_init must be 3 numbers (m/s), 'auto' or 'zero', got {v0_init!r}")
-        v = [float(c) for c in v0_init]
-        if len(v) != 3:
-            raise ValueError(f"v0_init must have 3 components (m/s), got {v0_init!r}")
-        return v
-
-    @staticmethod
-    def _surface_particles(inp: PhysicsInput) -> torch.Tensor:
-        from scipy.spatial import cKDTree
-
-        parts = inp.particles.detach().cpu().numpy()
-        surf = inp.surfaces[0].detach().cpu().numpy()
-        if len(surf) == 0:
-            return torch.arange(len(parts))
-        spacing = float(inp.particle_volume) ** (1 / 3)
-        d, _ = cKDTree(surf).query(parts, k=1)
-        idx = np.nonzero(d <= 1.5 * spacing)[0]
-        if len(idx) < 8:
-            idx = np.argsort(d)[: max(8, len(parts) // 4)]
-        return torch.as_tensor(np.sort(idx), dtype=torch.int64)
-
     @property
     def simulator(self) -> MPMSimulator:
         if self._sim is None or self._sim.device != str(_warp_device(self.device)):
@@ -385,7 +331,7 @@ class InversePhysicsModule(pl.LightningModule):
         return opts
 
     def train_dataloader(self):
-        return torch.utils.data.DataLoader(_StepStream(), batch_size=None)
+        return torch.utils.data.DataLoader(StepStream(), batch_size=None)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["projo4d"] = {
@@ -550,45 +496,6 @@ class InversePhysicsModule(pl.LightningModule):
         for k, v in rec.items():
             if isinstance(v, (int, float)) and k != "step":
                 self.log(k, float(v), on_step=True, on_epoch=False, prog_bar=k in ("loss/total",), batch_size=1)
-
-    def parameter_errors(self, est: dict | None = None) -> dict[str, float]:
-        """Errors against the ground truth when it is known (for logging; never used by the fit)."""
-        gt = self._ground_truth
-        if not gt or not gt.get("params"):
-            return {}
-        from toolkit.metrics.parameters import parameter_errors
-
-        est = est or self.estimate()
-        pred = dict(est["params"])
-        truth = dict(gt["params"])
-        if gt.get("v0") is not None:
-            pred["v0"], truth["v0"] = est["v0"], gt["v0"]
-        errs = parameter_errors(pred, truth)
-        return {f"error/{k}": float(v) for k, v in errs.items() if isinstance(v, (int, float))}
-
-    # ------------------------------------------------------------------ prediction
-    @torch.no_grad()
-    def predict_trajectory(self, n_frames: Optional[int] = None) -> dict[str, torch.Tensor]:
-        """Simulate all frames (training and future) with the current estimate.
-
-        Returns:
-            ``positions`` (T, N, 3) particle positions and ``means`` (T, G, 3) Gaussian means.
-        """
-        n_frames = n_frames or self.input.n_frames
-        x0, positions = self.simulate(n_frames - 1, frozenset())
-        means = carry(self.gaussian_means0 + self.gaussian_offset, positions, x0, self.embed_index, self.embed_weight)
-        return {"positions": positions, "means": means}
-
-    @torch.no_grad()
-    def render_frames(self, means: torch.Tensor, cameras: Sequence[int]) -> torch.Tensor:
-        """(T, C, H, W, 3) renders of the Gaussians at ``means`` (T, G, 3) for ``cameras``."""
-        cams = self.input.cameras[list(cameras)].to(means.device)
-        out = []
-        for m in means:
-            g = Gaussians(means=m, log_scales=self.log_scales, quats=self.quats, opacity_logits=self.opacity_logits,
-                          colors=self.colors, sh=self.sh)
-            out.append(self.renderer(g, cams).rgb.clamp(0, 1))
-        return torch.stack(out)
 
 
 def _warp_device(device: torch.device) -> str:

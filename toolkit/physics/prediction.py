@@ -1,0 +1,56 @@
+"""What a fitted :class:`~toolkit.physics.InversePhysicsModule` predicts and how far it is from
+the truth: the whole trajectory, renders of it, and parameter errors (a mixin of the module)."""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+
+from renderers import Gaussians
+from toolkit.physics.embedding import carry
+
+__all__ = ["PredictionMixin"]
+
+
+class PredictionMixin:
+    """Prediction and evaluation methods; they use the module's input, simulator, Gaussians and
+    renderer (``self.input``, ``self.simulate``, ``self.gaussian_*``, ``self.renderer``, ...)."""
+
+    def parameter_errors(self, est: dict | None = None) -> dict[str, float]:
+        """Errors against the ground truth when it is known (for logging; never used by the fit)."""
+        gt = self._ground_truth
+        if not gt or not gt.get("params"):
+            return {}
+        from toolkit.metrics.parameters import parameter_errors
+
+        est = est or self.estimate()
+        pred = dict(est["params"])
+        truth = dict(gt["params"])
+        if gt.get("v0") is not None:
+            pred["v0"], truth["v0"] = est["v0"], gt["v0"]
+        errs = parameter_errors(pred, truth)
+        return {f"error/{k}": float(v) for k, v in errs.items() if isinstance(v, (int, float))}
+
+    @torch.no_grad()
+    def predict_trajectory(self, n_frames: Optional[int] = None) -> dict[str, torch.Tensor]:
+        """Simulate all frames (training and future) with the current estimate.
+
+        Returns:
+            ``positions`` (T, N, 3) particle positions and ``means`` (T, G, 3) Gaussian means, metres.
+        """
+        n_frames = n_frames or self.input.n_frames
+        x0, positions = self.simulate(n_frames - 1, frozenset())
+        means = carry(self.gaussian_means0 + self.gaussian_offset, positions, x0, self.embed_index, self.embed_weight)
+        return {"positions": positions, "means": means}
+
+    @torch.no_grad()
+    def render_frames(self, means: torch.Tensor, cameras: Sequence[int]) -> torch.Tensor:
+        """(T, C, H, W, 3) renders of the Gaussians at ``means`` (T, G, 3) for ``cameras``."""
+        cams = self.input.cameras[list(cameras)].to(means.device)
+        out = []
+        for m in means:
+            g = Gaussians(means=m, log_scales=self.log_scales, quats=self.quats, opacity_logits=self.opacity_logits,
+                          colors=self.colors, sh=self.sh)
+            out.append(self.renderer(g, cams).rgb.clamp(0, 1))
+        return torch.stack(out)

@@ -1,0 +1,102 @@
+"""Where the physics fit starts: the initial velocity, the surface particles the geometric loss
+reads, the learning-rate schedule and the step stream Lightning iterates over.
+
+Pieces of :class:`~toolkit.physics.InversePhysicsModule`'s set-up that need nothing of the module
+itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Optional, Union
+
+import numpy as np
+import torch
+
+from toolkit.mpm import SimConfig
+from toolkit.physics.inputs import PhysicsInput
+
+__all__ = ["StartingVelocity", "initial_v0", "surface_particles", "cosine_with_warmup", "StepStream"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StartingVelocity:
+    """v0 to start from.
+
+    Attributes:
+        v0: 3 components, m/s, canonical frame.
+        hparam: ``(value,)`` to store as the module's ``v0_init`` hyperparameter (``None`` for
+            "estimate again on resume", or 3 numbers), or ``None`` to keep what was given.
+        estimate: the stage-0 ballistic estimate's record when v0 starts there, else ``None``.
+    """
+
+    v0: list[float]
+    hparam: Optional[tuple] = None
+    estimate: Optional[dict] = None
+
+
+def initial_v0(v0_init: Union[None, str, list[float]], inp: PhysicsInput, cfg: SimConfig) -> StartingVelocity:
+    """v0 to start from: explicit (3 numbers, m/s), ``"zero"``, or ``None``/``"auto"``: the stage-0
+    ballistic estimate (:mod:`toolkit.physics.initial_velocity`), zero when it has too few frames.
+
+    Raises:
+        ValueError: ``v0_init`` is none of those.
+    """
+    if v0_init is None or (isinstance(v0_init, str) and v0_init == "auto"):
+        from toolkit.physics.initial_velocity import initial_velocity_from_input
+
+        est = initial_velocity_from_input(inp, cfg)
+        if est is None:
+            log.info("v0 starts at zero: fewer than 3 stage-0 frames before ground contact to estimate it from")
+            return StartingVelocity([0.0, 0.0, 0.0], hparam=(None,))
+        log.info("v0 starts at the stage-0 estimate (%.3f, %.3f, %.3f) m/s (%s fit over frames %s, rms %.2g m; %s)",
+                 *est.v0, est.method, est.frames, est.rms_residual, est.stop_reason)
+        return StartingVelocity(list(est.v0), hparam=(None,), estimate=est.to_dict())
+    if isinstance(v0_init, str):
+        if v0_init == "zero":
+            return StartingVelocity([0.0, 0.0, 0.0], hparam=([0.0, 0.0, 0.0],))
+        raise ValueError(f"v0_init must be 3 numbers (m/s), 'auto' or 'zero', got {v0_init!r}")
+    v = [float(c) for c in v0_init]
+    if len(v) != 3:
+        raise ValueError(f"v0_init must have 3 components (m/s), got {v0_init!r}")
+    return StartingVelocity(v)
+
+
+def surface_particles(inp: PhysicsInput) -> torch.Tensor:
+    """Indices (int64, sorted) of the particles within 1.5 particle spacings of the first frame's
+    stage-0 surface (at least 8, or the nearest quarter); every particle when there is no surface."""
+    from scipy.spatial import cKDTree
+
+    parts = inp.particles.detach().cpu().numpy()
+    surf = inp.surfaces[0].detach().cpu().numpy()
+    if len(surf) == 0:
+        return torch.arange(len(parts))
+    spacing = float(inp.particle_volume) ** (1 / 3)
+    d, _ = cKDTree(surf).query(parts, k=1)
+    idx = np.nonzero(d <= 1.5 * spacing)[0]
+    if len(idx) < 8:
+        idx = np.argsort(d)[: max(8, len(parts) // 4)]
+    return torch.as_tensor(np.sort(idx), dtype=torch.int64)
+
+
+def cosine_with_warmup(k: int, total: int, warmup_fraction: float = 0.1, floor: float = 0.01) -> float:
+    """LR multiplier at the k-th active iteration of ``total``: linear warm-up, cosine decay to ``floor``."""
+    if total <= 1:
+        return 1.0
+    warm = max(1, int(round(warmup_fraction * total)))
+    if k < warm:
+        return (k + 1) / warm
+    t = (k - warm) / max(1, total - warm)
+    return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
+
+
+class StepStream(torch.utils.data.IterableDataset):
+    """An endless stream of placeholders: the module samples its own batches from the strategy."""
+
+    def __iter__(self):
+        while True:
+            yield 0
