@@ -35,9 +35,13 @@ def runs(tmp_path_factory):
     def get(effect: str) -> SimpleNamespace:
         if effect not in cache:
             hs = HiddenScene(effect, "none" if effect == "none" else "high")
-            scene = hs.generate(root / "scenes" / hs.name)
+            # a camera-pose error is an observation error, applied after stage 0: the scene's images
+            # and its stage 0 are the null scene's (same throw, material and seed), so share them
+            source = HiddenScene("none", "none") if effect == "camera_pose" else hs
+            assert source.spec() == hs.spec()
+            scene = source.generate(root / "scenes" / source.name)
             run = root / "runs" / hs.name
-            inp = stage0_physics_input(hs, scene, run / "images")
+            inp = stage0_physics_input(hs, scene, root / "images" / source.name)
             inp.save(run / "physics_input.pt")
             module = fit_base_from_images(inp, run / "physics", hs)
             result = discover(module, run / "discovery", **DISCOVER)
