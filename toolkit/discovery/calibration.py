@@ -71,9 +71,9 @@ class Thresholds:
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.write_text(json.dumps(asdict(self), indent=2))
-        return path
+        from toolkit.atomic import write_json
+
+        return write_json(path, asdict(self))
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -155,13 +155,13 @@ def save_config(refit: Refit, path, verdict: str = ""):
         return None
     comment = cfg.pop("_comment", "")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     head = "# discovered model (projo4d discover): replay with\n#   projo4d run --config THIS SCENE_DIR --out RUN_DIR\n" \
            "#   projo4d fit --config THIS --model.input_path RUN_DIR/physics_input.pt\n"
     if comment:
         head += "".join(f"# {line}\n" for line in _wrap(comment))
-    path.write_text(head + yaml.safe_dump(cfg, sort_keys=False))
-    return path
+    from toolkit.atomic import write_text
+
+    return write_text(path, head + yaml.safe_dump(cfg, sort_keys=False))
 
 
 def _wrap(text: str, width: int = 110) -> list[str]:

@@ -273,8 +273,8 @@ def write_report(result, out_dir: str | Path) -> list[Path]:
              _gap_plot(result, out / "gap.png")]
     figures = {"heatmap": files[0].name, "split": files[1].name, "gap": files[2].name}
     blocks = _blocks(result, figures)
-    md = out / "report.md"
-    md.write_text(_md(blocks))
-    page = out / "report.html"
-    page.write_text(_html(blocks))
+    from toolkit.atomic import write_text
+
+    md = write_text(out / "report.md", _md(blocks))
+    page = write_text(out / "report.html", _html(blocks))
     return files + [md, page]

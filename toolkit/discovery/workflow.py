@@ -30,7 +30,6 @@ The steps (each in its own module):
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -139,9 +138,9 @@ class DiscoveryResult:
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=2))
-        return path
+        from toolkit.atomic import write_json
+
+        return write_json(path, self.to_dict())
 
     def to_module(self):
         """The base module with the discovered effect added, as a new
