@@ -112,6 +112,27 @@ def test_camera_subsets_and_strategy_parsing():
         strategy_options(parse_strategy("joint", {"cycles": 2}), {}, "sand")
 
 
+def test_substeps_keep_the_configs_courant_number_on_the_final_grid():
+    """The config (synthetic elastic: dx 0.02 m, 100 substeps) scaled to the final grid: the small
+    preset's 0.04 m halves the substeps; an override back to 0.02 m restores them; explicit
+    substeps win."""
+    from toolkit.benchmark import BenchmarkSpec, SceneEntry
+    from toolkit.benchmark.plan import _load_config, config_for, scene_settings
+
+    scene = SceneEntry("a", "/x", "neo_hookean")
+    cfg = _load_config(config_for("synthetic", "neo_hookean"))["sim"]
+    assert cfg["dx"] == 0.02
+
+    def sim(size, overrides):
+        return scene_settings(scene, BenchmarkSpec([scene], ["progressive"], size=size, overrides=overrides))[0]["sim"]
+
+    assert sim("full", {}) == {**sim("full", {}), "dx": 0.02, "substeps": cfg["substeps"]}
+    assert (sim("small", {})["dx"], sim("small", {})["substeps"]) == (0.04, round(cfg["substeps"] / 2))
+    assert (sim("small", {"sim": {"dx": 0.02}})["dx"], sim("small", {"sim": {"dx": 0.02}})["substeps"]) == (0.02, cfg["substeps"])
+    assert sim("full", {"sim": {"dx": 0.01}})["substeps"] == 2 * cfg["substeps"]
+    assert sim("small", {"sim": {"dx": 0.02, "substeps": 7}})["substeps"] == 7
+
+
 # ------------------------------------------------------------------------------------ tables
 def _rec(scene, strategy, cd, emd, e_err, cams=3, material="neo_hookean"):
     return {"scene": scene, "material": material, "strategy": strategy, "cameras": cams, "curriculum": "X",
@@ -147,6 +168,25 @@ def test_tables_mean_std_of_known_numbers():
     assert "| progressive | 2 | **1.500 ± 0.500** |" in md
     assert "| sequential | 2 | 5.000 ± 1.000 |" in md
     assert "number of cameras" in md and "Pairwise comparisons" in md
+
+
+def test_tables_count_only_the_fits_of_the_current_plan(tmp_path):
+    """A folder that still holds fits of an earlier, larger plan: the tables of a smaller plan
+    count its own fits only, so "n/planned" never reads 5/2."""
+    from toolkit.benchmark.tables import collect_records, write_tables
+
+    for scene, cd in (("neo_hookean/000", 1.0), ("neo_hookean/001", 3.0), ("neo_hookean/004", 100.0)):
+        run = tmp_path / "runs" / scene / "cams3" / "progressive"
+        run.mkdir(parents=True)
+        (run / "job.json").write_text(json.dumps({"kind": "fit", "status": "done", "scene": scene, "strategy": "progressive",
+                                                 "cameras": 3, "material": "neo_hookean", "wall_s_total": 1.0}))
+        (run / "summary.json").write_text(json.dumps({"material": "neo_hookean", "future": {"cd": cd}, "errors": {}}))
+    assert len(collect_records(tmp_path)[0]) == 3
+    plan = {("neo_hookean/000", "progressive", 3), ("neo_hookean/001", "progressive", 3)}
+    _, _, t = write_tables(tmp_path, planned={"neo_hookean|3|progressive": 2}, only=plan)
+    (row,) = t["tables"][0]["rows"]
+    assert row["values"]["cd"] == {"mean": 2.0, "std": 1.0, "n": 2} and row["planned"] == 2
+    assert "| progressive | 2/2 |" in (tmp_path / "tables" / "tables.md").read_text()
 
 
 def test_strip_video_of_more_than_ten_frames(tmp_path):

@@ -455,14 +455,14 @@ def scene_settings(scene: SceneEntry, spec: BenchmarkSpec) -> tuple[dict, Option
     if base.get("material") not in (None, scene.material):
         raise BenchmarkError(f"{cfg_path} is for material {base['material']!r} but scene {scene.name} is {scene.material!r}")
     preset = BENCH_SIZES[spec.size]["settings"]
-    settings = _merge(base, preset)
-    preset_dx = (preset.get("sim") or {}).get("dx")
-    if preset_dx and "substeps" not in (preset.get("sim") or {}):
-        # a coarser grid allows a proportionally longer time step: keep the config's Courant number
+    settings = _merge(_merge(base, preset), spec.overrides)
+    given_sim = {**(preset.get("sim") or {}), **(spec.overrides.get("sim") or {})}
+    if "dx" in given_sim and "substeps" not in given_sim:
+        # a grid other than the config's keeps the config's Courant number: substeps scale with
+        # config dx / final dx (the final dx is the overrides' when they give one, else the preset's)
         base_sim = base.get("sim") or {}
-        scale = float(base_sim.get("dx", 0.02)) / float(preset_dx)
+        scale = float(base_sim.get("dx", 0.02)) / float(settings["sim"]["dx"])
         settings["sim"]["substeps"] = max(10, int(round(float(base_sim.get("substeps", 100)) * scale)))
-    settings = _merge(settings, spec.overrides)
     settings["material"] = scene.material
     settings["scene"] = scene.path
     unknown = set(settings) - set(RunSettings.__dataclass_fields__)

@@ -326,8 +326,9 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
             if j["kind"] == "fit":
                 key = f"{j['material']}|{j['cameras']}|{j['strategy']}"
                 planned[key] = planned.get(key, 0) + 1
+        fits = {(j["scene"], j["strategy"], j["cameras"]) for j in jobs if j["kind"] == "fit"}
         md, _, tables = write_tables(bench, strategies=[s.label for s in spec.strategies], settings=_settings_summary(spec, jobs),
-                                     planned=planned)
+                                     planned=planned, only=fits)
         tables_path = str(md)
         if figures and tables.get("records"):
             from toolkit.benchmark.plots import write_figures

@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Iterable, Optional, Sequence
+from typing import Collection, Iterable, Optional, Sequence
 
 __all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
            "write_tables", "mean_std"]
@@ -129,8 +129,12 @@ def record_from_run(run_dir: str | Path, meta: Optional[dict] = None) -> Optiona
     }
 
 
-def collect_records(bench_dir: str | Path) -> tuple[list[dict], list[dict]]:
-    """Records of every finished fit of a benchmark folder, and the failed jobs (from their markers)."""
+def collect_records(bench_dir: str | Path, only: Optional[Collection[tuple]] = None) -> tuple[list[dict], list[dict]]:
+    """Records of every finished fit of a benchmark folder, and the failed jobs (from their markers).
+
+    ``only``: ``(scene, strategy, cameras)`` triples to keep (the fits of the current plan); fits
+    of an earlier, larger plan left in the folder are then not counted. Default: every fit.
+    """
     from toolkit.benchmark.jobs import read_marker
 
     records, failures = [], []
@@ -142,6 +146,8 @@ def collect_records(bench_dir: str | Path) -> tuple[list[dict], list[dict]]:
         if not m or m.get("kind") != "fit":
             continue
         meta = {"scene": m.get("scene"), "strategy": m.get("strategy"), "cameras": m.get("cameras")}
+        if only is not None and (meta["scene"], meta["strategy"], meta["cameras"]) not in only:
+            continue
         if m.get("status") == "done":
             rec = record_from_run(marker_path.parent, meta)
             if rec is not None:
@@ -388,14 +394,15 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
 
 
 def write_tables(bench_dir: str | Path, out_dir: Optional[str | Path] = None, strategies: Optional[Sequence[str]] = None,
-                 settings: Optional[dict] = None, planned: Optional[dict] = None, title: str = "Strategy comparison"
-                 ) -> tuple[Path, Path, dict]:
-    """Collect a benchmark folder's records and write ``tables.md`` and ``tables.json``.
+                 settings: Optional[dict] = None, planned: Optional[dict] = None, title: str = "Strategy comparison",
+                 only: Optional[Collection[tuple]] = None) -> tuple[Path, Path, dict]:
+    """Collect a benchmark folder's records (``only``: see :func:`collect_records`) and write
+    ``tables.md`` and ``tables.json``.
 
     Returns:
         The two paths and the tables dict.
     """
-    records, failures = collect_records(bench_dir)
+    records, failures = collect_records(bench_dir, only)
     tables = build_tables(records, strategies, failures, settings, planned)
     tables["records"] = [{k: v for k, v in r.items() if k != "per_frame"} for r in records]
     out = Path(out_dir) if out_dir else Path(bench_dir) / "tables"

@@ -36,9 +36,12 @@ which measures the optimizer rather than the data):
    leaving them wherever the optimizer stopped; the others stay where the fit put them (a joint
    step let a geometry bias trade their fitted values for prior mass: on the demo it moved v0 by
    0.24 m/s and nu by 0.2 away from the fit). It is taken only if it lowers the MAP objective
-   (re-matched), halving it up to three times.
+   (re-matched), halving it up to three times, and kept only if the fit's own loss (image and
+   geometric terms over every training frame and camera) rises by at most
+   :data:`FIT_LOSS_TOLERANCE`: otherwise the images determine what the geometric term leaves free,
+   the fitted values stay, and those parameters are labelled *weakly determined* with a note.
 
-Cost: 4K + 1 rollouts for steps 1-2, 2 per nonlinear parameter for step 5 and at most 5 for step
+Cost: 4K + 1 rollouts for steps 1-2, 2 per nonlinear parameter for step 5 and at most 7 for step
 6, all forward (a fit iteration is a forward and a backward pass, 4.5-6x a forward): 16-22
 rollouts for E and v0, 5-7 % of the fit in the benchmark. The initial velocity's component along
 the ground normal of a body resting on a non-separating ground is fixed at 0
@@ -83,6 +86,11 @@ CLUSTERS_PER_FRAME = 11
 OPEN_SIDE_FRACTION = 0.25
 #: finite-difference steps in the raw space
 FD_STEP = {"log10": 0.02, "tanh": 0.01, "linear": 0.01}
+#: the MAP prior step is undone when it raises the fit's own loss (image and geometric terms) by more
+#: than this fraction: the geometric term alone may leave free what the images determine (on the
+#: 64 px five-family benchmark it reset fitted plasticine and Newtonian parameters to their starts).
+#: The same 1 % as the coarse search's MIN_GAIN, the other way round.
+FIT_LOSS_TOLERANCE = 0.01
 #: largest step of the curvature measurement (which aims at moving the surface by one point spacing)
 WIDE_STEP_MAX = {"log10": 0.5, "tanh": 0.3, "linear": 0.5}
 
@@ -325,10 +333,25 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
         cov = np.linalg.inv(H)
         step_info: dict = {"taken": False}
         free = [k for k in range(K) if math.sqrt(max(cov[k, k], 0.0)) / params[k].prior_std > NOT_DETERMINED_ABOVE]
+        image_held: dict[int, float] = {}
         if prior_step and free:
+            before = theta
             theta, step_info, extra = _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec,
                                                 free)
             rollouts += extra
+            if step_info.get("taken"):
+                rise, extra = _fit_loss_rise(module, params, n, before, theta)
+                rollouts += extra
+                step_info["fit_loss_rise"] = rise
+                if rise > FIT_LOSS_TOLERANCE:  # the fit's whole loss (images too) objects: keep the fit
+                    for p, v in zip(params, before):
+                        p.set(float(v))
+                    theta = before
+                    step_info.update(taken=False, reason=(
+                        f"reverted: the step raised the fit's own loss (image and geometric terms) by "
+                        f"{100 * rise:.1f} % (> {100 * FIT_LOSS_TOLERANCE:.0f} %), so the images constrain what the "
+                        f"geometric term leaves free"))
+                    image_held = {k: rise for k in free}
         elif prior_step:
             step_info = {"taken": False, "reason": "every parameter is determined or weakly determined by the clip"}
         q = float(student_t.ppf(0.5 + level / 2, dof))
@@ -352,6 +375,10 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
             label = LABELS[2] if len(sides) == 2 else LABELS[max(1, LABELS.index(label))]
             note = ("the clip bounds it on neither side within the interval" if len(sides) == 2 else
                     f"the clip bounds it only from {'below' if sides[0] > 0 else 'above'}")
+        if k in image_held:
+            label = LABELS[1]
+            note = (f"the geometric term leaves it free (interval from it alone), but moving it to its prior "
+                    f"raises the fit's loss by {100 * image_held[k]:.1f} %: the images constrain it")
         lo, hi = sorted((p.physical(ends[0]), p.physical(ends[1])))
         out.append(ParameterUncertainty(p.name, p.physical(theta[k]), lo, hi, label, ratio, p.space, sd,
                                         p.physical(p.prior_mean), note))
@@ -401,6 +428,33 @@ def _open_sides(module, params, frames, n, theta, sds, q, curvature, s2) -> tupl
         if sides:
             found[k] = tuple(sides)
     return found, rollouts
+
+
+def _fit_loss_rise(module, params, n: int, before: np.ndarray, after: np.ndarray) -> tuple[float, int]:
+    """Relative change of the fit's own loss (:meth:`~toolkit.physics.InversePhysicsModule.losses`
+    of the last stage that optimizes the material, else the last stage: image and geometric terms,
+    every training camera, every fitted frame after frame 0) from ``before`` to ``after`` (raw
+    parameters); the parameters are left at ``after``. Returns ``(rise, rollouts)``."""
+    import dataclasses
+
+    stages = list(module.stages)
+    stage = next((s for s in reversed(stages) if "M" in s.groups), stages[-1])
+    probe = dataclasses.replace(stage, groups=frozenset())
+    cams = list(module.input.train_cameras)
+    fit_frames = list(range(1, module.input.n_train))
+    x0 = (module.particles0 + module.particle_offset).detach()
+    losses = []
+    for th in (before, after):
+        for p, v in zip(params, th):
+            p.set(float(v))
+        try:
+            module._cached_positions = (x0, _simulate(module, max([n, *fit_frames])))
+            with torch.no_grad():
+                losses.append(float(module.losses(probe, cams, fit_frames)["total"]))
+        finally:
+            module._cached_positions = None
+    rise = (losses[1] - losses[0]) / max(abs(losses[0]), 1e-30)
+    return (rise if math.isfinite(rise) else math.inf), 2
 
 
 def _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec, free: list[int]):
