@@ -5,7 +5,7 @@ frictionless (``slip``) ground, 10 cameras at 32 px, 9 frames (6 for fitting, 3 
 truth simulated with 16x the particles and 2.7x the substeps of the fit and rendered as a
 textured mesh. Each is fitted with the base model (no effect) by the physics trainer, then
 :func:`toolkit.discovery.discover` runs with the shipped, null-calibrated thresholds. The
-fitted scenes are shared at module scope (each is generated, fitted and discovered once).
+fitted scenes are shared at session scope (each is generated, fitted and discovered once).
 """
 
 from __future__ import annotations
@@ -23,17 +23,29 @@ from toolkit.discovery.hidden import HiddenScene, fit_base
 #: thresholds were calibrated with (``benchmarks/discovery.py --small``); the EMD is skipped
 DISCOVER = dict(emd=False)
 
+# one worker builds each scene once: the tests sharing a scene (ground_friction: three, none: two)
+# were spread over both workers, and each worker fitted and discovered the scene again
+pytestmark = pytest.mark.xdist_group("discovery")
 
-@pytest.fixture(scope="module")
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: one torch thread is faster on shared cores (restored after the module)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# session scope: a module fixture is torn down (and rebuilt) whenever the worker leaves the module
+@pytest.fixture(scope="session")
 def runs(tmp_path_factory):
     """``runs(effect)``: the scene hiding ``effect`` at high strength (``"none"``: nothing hidden),
-    generated, fitted with the base model and discovered once per module."""
+    generated, fitted with the base model and discovered once per test session."""
     from toolkit.discovery import discover
 
     cache: dict[str, SimpleNamespace] = {}
     root = tmp_path_factory.mktemp("discovery")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: one thread is faster on shared cores
 
     def get(effect: str) -> SimpleNamespace:
         if effect not in cache:
@@ -47,8 +59,7 @@ def runs(tmp_path_factory):
             cache[effect] = SimpleNamespace(scene=hs, module=module, result=result, run=run)
         return cache[effect]
 
-    yield get
-    torch.set_num_threads(threads)
+    return get
 
 
 # ---------------------------------------------------------------------------------------------- end to end

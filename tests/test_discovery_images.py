@@ -4,7 +4,7 @@ The scenes of :mod:`toolkit.discovery.hidden` (size ``tiny``: 32 px, 10 cameras 
 fitted, 6 + 3 frames) go through stage 0 (:data:`toolkit.discovery.from_images.STAGE0_SCHEDULES`),
 the base model is fitted with the particle positions held still, and discovery runs on a small
 candidate set (three forces and the camera-pose control) with the shipped thresholds. Each scene
-is built once per module.
+is built once per test session (by the one worker of the module's xdist group).
 """
 
 from __future__ import annotations
@@ -21,7 +21,19 @@ CANDIDATES = ["ground_friction", "air_drag", "extra_acceleration", "camera_pose"
 DISCOVER = dict(candidates=CANDIDATES, top_k=3, emd=False)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: one torch thread is faster on shared cores (restored after the module)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# Session scope, not module scope: under ``--dist loadgroup`` the worker that owns the group
+# interleaves tests of other modules between this module's tests, and pytest tears a module
+# fixture down (and rebuilds it, stage 0 included) every time the module is re-entered.
+@pytest.fixture(scope="session")
 def runs(tmp_path_factory):
     from toolkit.discovery import discover
     from toolkit.discovery.from_images import fit_base_from_images, stage0_physics_input
@@ -29,8 +41,6 @@ def runs(tmp_path_factory):
 
     cache: dict[str, SimpleNamespace] = {}
     root = tmp_path_factory.mktemp("discovery_images")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
 
     def get(effect: str) -> SimpleNamespace:
         if effect not in cache:
@@ -48,8 +58,7 @@ def runs(tmp_path_factory):
             cache[effect] = SimpleNamespace(scene=hs, module=module, input=inp, result=result, run=run)
         return cache[effect]
 
-    yield get
-    torch.set_num_threads(threads)
+    return get
 
 
 @pytest.mark.slow
