@@ -15,6 +15,10 @@ Examples::
     # a public dataset on disk, the camera-count ablation (Table 8)
     projo4d benchmark --scenes data/pacnerf/elastic/* --material neo_hookean --dataset pacnerf --cameras 1 2 3 10
 
+    # every scene also as two perturbed variants (own rows in the tables)
+    projo4d benchmark --suite suites/s0 --out bench/s0v --variants noisy='{"mask_noise": 0.2, "gamma": 1.2}' \
+        miscalibrated='{"calibration_deg": 0.5, "calibration_m": 0.005}'
+
     # tables (Markdown + JSON) and figures again from what is on disk
     projo4d benchmark --out bench/s0 --tables-only
 
@@ -42,6 +46,16 @@ def _strategy_option(text: str) -> tuple[str, dict]:
     if not isinstance(opts, dict):
         raise argparse.ArgumentTypeError(f"the options of {label} must be a JSON object, got {value!r}")
     return label, opts
+
+
+def _variant(text: str) -> tuple[str, dict]:
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected NAME=JSON such as noisy='{{\"mask_noise\": 0.2}}', got {text!r}")
+    fields = json_arg(value)
+    if not isinstance(fields, dict):
+        raise argparse.ArgumentTypeError(f"the variant {name} must be a JSON object of VariantSpec fields, got {value!r}")
+    return name.strip(), fields
 
 
 def _gpus(text: str) -> list[str]:
@@ -76,6 +90,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                       help="options of one strategy, e.g. cyclic='{\"pattern\": \"XA-(S-M-A)xN\"}' (repeatable)")
     what.add_argument("--cameras", nargs="+", type=int, default=[3], metavar="N",
                       help="camera counts (default 3; several make the Table-8 ablation)")
+    what.add_argument("--variants", nargs="+", type=_variant, default=[], metavar="NAME=JSON",
+                      help="also run every scene as each variant, e.g. noisy='{\"mask_noise\": 0.2, \"gamma\": 1.2}' "
+                           "(VariantSpec fields, see `projo4d generate variant --help`; default: none)")
 
     size = parser.add_argument_group("sizes and settings (config, then --size, then these)")
     size.add_argument("--size", choices=["full", "small"], default="full",
@@ -189,9 +206,12 @@ def spec_from_args(args: argparse.Namespace):
         periodic = {"per_stage": args.periodic_eval, "emd_points": args.periodic_eval_points}
     else:
         periodic = None
+    variants = dict(args.variants)
+    if len(variants) != len(args.variants):
+        raise BenchmarkError(f"--variants names must be unique, got {[n for n, _ in args.variants]}")
     return BenchmarkSpec(scenes=scenes, strategies=strategies, cameras=list(args.cameras), size=args.size, dataset=dataset,
                          config=str(args.config) if args.config else None, overrides=overrides, iterations=iterations,
-                         periodic_eval=periodic, checkpoint_every=args.checkpoint_every)
+                         periodic_eval=periodic, checkpoint_every=args.checkpoint_every, variants=variants)
 
 
 def _generation_device(args: argparse.Namespace) -> str:
@@ -267,7 +287,7 @@ def _tables_only(args: argparse.Namespace) -> int:
     md, js, tables = write_tables(out, strategies=strategies, settings=settings)
     if not args.no_figures:
         records, _ = collect_records(out)
-        write_figures(out, records, strategies=strategies)
+        write_figures(out, [r for r in records if not r.get("variant")], strategies=strategies)
     if args.export:
         from toolkit.benchmark.runner import _Events, _export
 

@@ -124,6 +124,8 @@ def estimate_job(job: dict, info: dict, profile: DeviceProfile, n_particles: Opt
         spec = s["spec"]
         full_mpix = spec["width"] * spec["height"] / 1e6
         return p.startup + T * p.generate_per_frame * max(1.0, full_mpix / 0.16) + C * T * 0.01
+    if job["kind"] == "variant":  # read, perturb and write every image once
+        return p.startup + C * T * 0.02 * max(1.0, mpix / 0.16)
     if job["kind"] == "prepare":
         if s.get("geometry") == "oracle":
             return p.startup + C * T * 0.002 + 2.0
@@ -225,7 +227,7 @@ def simulate_schedule(jobs: list[dict], seconds: dict[str, float], capacity: int
     """
     import heapq
 
-    kind_rank = {"generate": 0, "prepare": 1, "fit": 2}
+    kind_rank = {"generate": 0, "variant": 0, "prepare": 1, "fit": 2}
     order = {j["id"]: i for i, j in enumerate(jobs)}
     finished_at = {jid: 0.0 for jid in done}
     pending = [j for j in jobs if j["id"] not in done]

@@ -82,6 +82,10 @@ def job_is_done(job: dict) -> bool:
         from toolkit.synthetic.spec import spec_from_dict
 
         return scene_is_complete(job["folder"], spec_from_dict(job["settings"]["spec"]))
+    if job["kind"] == "variant":  # no marker: variant.json says what the folder holds
+        from toolkit.benchmark.variant_jobs import variant_job_done
+
+        return variant_job_done(job)
     m = read_marker(job["folder"])
     return bool(m and m.get("status") == "done" and m.get("fingerprint") == job["fingerprint"] and _outputs_exist(job))
 
@@ -96,6 +100,7 @@ def _write_marker(job: dict, status: str, wall_s: float, result: Optional[dict] 
     marker = {
         "id": job["id"], "kind": job["kind"], "status": status, "fingerprint": job["fingerprint"],
         "scene": job["scene"], "material": job["material"], "cameras": job.get("cameras"), "strategy": job.get("strategy"),
+        **({"variant": job["variant"]} if job.get("variant") else {}),
         "wall_s_total": round(sum(a["wall_s"] for a in attempts), 2), "attempts": attempts,
         "estimate_s": job.get("extra", {}).get("estimate_s"), "result": result or {}, "error": error,
     }
@@ -134,7 +139,7 @@ def _redirect_output(path: Optional[str]):
 
 # ------------------------------------------------------------------------------------ entry point
 def execute_job(job: dict) -> dict:
-    """Run one job (``generate``, ``prepare`` or ``fit``) here and return its result.
+    """Run one job (``generate``, ``variant``, ``prepare`` or ``fit``) here and return its result.
 
     Returns:
         ``{"id", "status" ("done", "failed" or "interrupted"), "wall_s", "result", "error", "pid",
@@ -153,7 +158,7 @@ def execute_job(job: dict) -> dict:
     with _redirect_output(job.get("extra", {}).get("log")):
         try:
             _check_stop()
-            runner = {"generate": _generate, "prepare": _prepare, "fit": _fit}.get(job["kind"])
+            runner = {"generate": _generate, "variant": _variant, "prepare": _prepare, "fit": _fit}.get(job["kind"])
             if runner is None:
                 raise ValueError(f"unknown job kind {job['kind']!r}")
             result = runner(job) or {}
@@ -164,7 +169,7 @@ def execute_job(job: dict) -> dict:
             status, error = "failed", f"{type(exc).__name__}: {exc}"
             traceback.print_exc()
     wall = time.perf_counter() - t0
-    if job["kind"] != "generate":
+    if job["kind"] not in ("generate", "variant"):  # those two are recognised by their files
         _write_marker(job, status, wall, result, error)
     return {"id": job["id"], "status": status, "wall_s": round(wall, 2), "result": result, "error": error,
             "pid": os.getpid(), "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"), "host": socket.gethostname()}
@@ -179,6 +184,12 @@ def _generate(job: dict) -> dict:
     if not scene_is_complete(job["folder"], spec):
         generate_scene(spec, job["folder"], progress=False)
     return {"shape": spec.shape, "params": spec.params}
+
+
+def _variant(job: dict) -> dict:
+    from toolkit.benchmark.variant_jobs import run_variant_job
+
+    return run_variant_job(job)
 
 
 # ------------------------------------------------------------------------------------ prepare

@@ -99,6 +99,8 @@ class SceneEntry:
         generate: a :class:`~toolkit.synthetic.SceneSpec` as a dict when the benchmark writes the
             scene itself (a ``generate`` job), else ``None``.
         config: YAML config of this scene (default: the dataset's config of its material).
+        variant: for a variant of another scene (:mod:`toolkit.benchmark.variant_jobs`), its
+            ``name``, ``spec``, ``source`` folder and ``base`` entry; else ``None``.
     """
 
     name: str
@@ -106,6 +108,7 @@ class SceneEntry:
     material: str
     generate: Optional[dict] = None
     config: Optional[str] = None
+    variant: Optional[dict] = None
 
 
 @dataclass
@@ -136,6 +139,8 @@ class BenchmarkSpec:
             ``None`` to switch it off.
         checkpoint_every: physics iterations between checkpoints (a stopped job also saves
             where it stopped).
+        variants: ``{name: VariantSpec fields}``: every scene also runs as each variant
+            (:mod:`toolkit.benchmark.variant_jobs`); empty: none.
     """
 
     scenes: list[SceneEntry]
@@ -148,6 +153,7 @@ class BenchmarkSpec:
     iterations: dict = field(default_factory=dict)
     periodic_eval: Optional[dict] = field(default_factory=lambda: dict(DEFAULT_PERIODIC_EVAL))
     checkpoint_every: int = 200
+    variants: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.strategies = [s if isinstance(s, StrategyEntry) else parse_strategy(s) for s in self.strategies]
@@ -168,6 +174,10 @@ class BenchmarkSpec:
         unknown = set(self.iterations) - set(ITERATION_KEYS)
         if unknown:
             raise BenchmarkError(f"unknown iteration keys {sorted(unknown)}; known: {list(ITERATION_KEYS)}")
+        if self.variants:
+            from toolkit.benchmark.variant_jobs import check_variants
+
+            self.variants = check_variants(self.variants)
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
@@ -185,10 +195,11 @@ class Job:
     """One unit of work (see the module docstring).
 
     Attributes:
-        id: ``generate:<scene>``, ``prepare:<scene>:cams<k>`` or ``fit:<scene>:cams<k>:<strategy>``.
-        kind: ``generate``, ``prepare`` or ``fit``.
+        id: ``generate:<scene>``, ``variant:<scene>``, ``prepare:<scene>:cams<k>`` or
+            ``fit:<scene>:cams<k>:<strategy>``.
+        kind: ``generate``, ``variant``, ``prepare`` or ``fit``.
         folder: where the job writes (absolute).
-        scene, material, cameras, strategy: what it is about (``None`` where not applicable).
+        scene, material, cameras, strategy, variant: what it is about (``None`` where not applicable).
         depends: ids of the jobs that must be done first.
         settings: :class:`~toolkit.pipeline.RunSettings` fields (``prepare``, ``fit``) or
             ``{"spec": ...}`` (``generate``).
@@ -208,6 +219,7 @@ class Job:
     settings: dict = field(default_factory=dict)
     fingerprint: str = ""
     extra: dict = field(default_factory=dict)
+    variant: Optional[str] = None
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
@@ -476,6 +488,8 @@ def _fingerprint(data: Any) -> str:
 
 
 def _scene_cameras(scene: SceneEntry) -> int:
+    if scene.variant is not None:
+        return _scene_cameras(SceneEntry(**scene.variant["base"]))
     if scene.generate is not None:
         return int(scene.generate["spec"]["n_cameras"])
     from toolkit.data import load_scene
@@ -488,13 +502,21 @@ def plan_benchmark(spec: BenchmarkSpec, out: str | Path) -> list[Job]:
     """The jobs of a benchmark in ``out`` (nothing runs; nothing is written).
 
     One ``prepare`` job per scene and camera count, shared by every strategy's ``fit`` job of
-    that scene and camera count; a ``generate`` job first for scenes the benchmark writes.
+    that scene and camera count; a ``generate`` job first for scenes the benchmark writes; with
+    ``spec.variants``, a ``variant`` job and the same jobs for each variant of each scene.
     """
+    from toolkit.benchmark.variant_jobs import variant_job, variant_scenes
+
     out = Path(out).resolve()
     jobs: list[Job] = []
-    for scene in spec.scenes:
-        gen_id = None
-        if scene.generate is not None:
+    for scene in list(spec.scenes) + variant_scenes(spec.scenes, spec.variants, out):
+        gen_id, var = None, (scene.variant or {}).get("name")
+        if var is not None:
+            job = variant_job(scene, out, str(out / "logs" / _log_name(f"variant:{scene.name}")),
+                              _fingerprint({"kind": "variant", "source": scene.variant["source"], "spec": scene.variant["spec"]}))
+            gen_id = job.id
+            jobs.append(job)
+        elif scene.generate is not None:
             gen_id = f"generate:{scene.name}"
             jobs.append(Job(id=gen_id, kind="generate", folder=scene.path, scene=scene.name, material=scene.material,
                             settings=copy.deepcopy(scene.generate), fingerprint=_fingerprint(scene.generate["spec"]),
@@ -507,10 +529,12 @@ def plan_benchmark(spec: BenchmarkSpec, out: str | Path) -> list[Job]:
             prep_settings = {**base, "cameras": cams, "out": str(prep_dir)}
             prep_key = {k: prep_settings.get(k) for k in PREPARE_FIELDS}
             prep_key["sim_dx"] = (prep_settings.get("sim") or {}).get("dx", 0.02)
+            if var is not None:
+                prep_key["variant"] = scene.variant["spec"]
             prep_id = f"prepare:{scene.name}:cams{count}"
             prep_fp = _fingerprint({"kind": "prepare", **prep_key, "scene": scene.name})
             jobs.append(Job(id=prep_id, kind="prepare", folder=str(prep_dir), scene=scene.name, material=scene.material,
-                            cameras=count, depends=[gen_id] if gen_id else [], settings=prep_settings, fingerprint=prep_fp,
+                            cameras=count, depends=[gen_id] if gen_id else [], settings=prep_settings, fingerprint=prep_fp, variant=var,
                             extra={"config": cfg_path, "log": str(out / "logs" / _log_name(prep_id))}))
             for strat in spec.strategies:
                 run_dir = out / "runs" / scene.name / f"cams{count}" / strat.label
@@ -522,7 +546,7 @@ def plan_benchmark(spec: BenchmarkSpec, out: str | Path) -> list[Job]:
                                                                                    "report_cameras", "threads")}
                 fp_settings["scene"] = scene.name
                 jobs.append(Job(id=fit_id, kind="fit", folder=str(run_dir), scene=scene.name, material=scene.material,
-                                cameras=count, strategy=strat.label, depends=[prep_id], settings=fit_settings,
+                                cameras=count, strategy=strat.label, depends=[prep_id], settings=fit_settings, variant=var,
                                 fingerprint=_fingerprint({"kind": "fit", "prepare": prep_fp, **fp_settings}),
                                 extra={"physics_input": str(prep_dir / "physics_input.pt"), "periodic_eval": spec.periodic_eval,
                                        "checkpoint_every": spec.checkpoint_every, "config": cfg_path,

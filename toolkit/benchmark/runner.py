@@ -241,7 +241,9 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
 
     # estimates: the model (slowed down when jobs share a GPU), rescaled by what finished jobs
     # measured (also in earlier runs: the markers keep both numbers)
-    scene_by_name = {s.name: s for s in spec.scenes}
+    from toolkit.benchmark.variant_jobs import base_scene, variant_scenes
+
+    scene_by_name = {s.name: s for s in list(spec.scenes) + variant_scenes(spec.scenes, spec.variants, bench)}
     slow = sharing_slowdown(jobs_per_gpu) if gpus else 1.0
     calib = Calibration()
     particles: dict[str, int] = {}
@@ -253,7 +255,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     model: dict[str, float] = {}
 
     def price(j: dict, n_part: Optional[int]) -> None:
-        sc = scene_by_name[j["scene"]]
+        sc = base_scene(scene_by_name[j["scene"]])  # a variant: priced as its source scene
         info = scene_info(sc.path, None if Path(sc.path, "all_data.json").is_file() else (sc.generate or {}).get("spec"))
         model[j["id"]] = estimate_job(j, info, profile, n_part) * slow
         j["extra"]["estimate_s"] = round(model[j["id"]], 1)
@@ -324,7 +326,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         planned = {}
         for j in jobs:
             if j["kind"] == "fit":
-                key = f"{j['material']}|{j['cameras']}|{j['strategy']}"
+                key = f"{j['material']}|{j['cameras']}|{j['strategy']}" + (f"|{j['variant']}" if j.get("variant") else "")
                 planned[key] = planned.get(key, 0) + 1
         fits = {(j["scene"], j["strategy"], j["cameras"]) for j in jobs if j["kind"] == "fit"}
         md, _, tables = write_tables(bench, strategies=[s.label for s in spec.strategies], settings=_settings_summary(spec, jobs),
@@ -335,7 +337,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
             from toolkit.benchmark.tables import collect_records
 
             records, _ = collect_records(bench)
-            write_figures(bench, records, strategies=[s.label for s in spec.strategies])
+            write_figures(bench, [r for r in records if not r.get("variant")], strategies=[s.label for s in spec.strategies])
         emit("tables", markdown=str(md), rows=sum(len(t["rows"]) for t in tables["tables"]),
              headline=_headline(tables))
     except Exception as exc:  # noqa: BLE001 - the jobs' results are on disk; tables can be redone with --tables-only
@@ -372,6 +374,8 @@ def _settings_summary(spec, jobs: Sequence[dict]) -> dict:
             pass
     out["schedules (groups:iterations@frames/cameras x frames per step)"] = schedules
     out["periodic evaluation"] = spec.periodic_eval
+    if spec.variants:
+        out["variants"] = spec.variants
     configs = {}
     for j in jobs:
         if j["kind"] == "prepare":
@@ -386,7 +390,8 @@ def _headline(tables: dict) -> list[dict]:
     for t in tables.get("tables", []):
         for r in t["rows"]:
             v = r["values"]
-            out.append({"material": t["material"], "cameras": t["cameras"], "strategy": r["strategy"], "n": r["n"],
+            out.append({"material": t["material"], "cameras": t["cameras"], "strategy": r["strategy"],
+                        **({"variant": r["variant"]} if r.get("variant") else {}), "n": r["n"],
                         **{k.replace("mae:", "mae_"): (None if c["mean"] is None else round(c["mean"], 5)) for k, c in v.items()}})
     return out
 

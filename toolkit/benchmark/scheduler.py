@@ -39,7 +39,7 @@ class Events:
         return rec
 
 
-_KIND_RANK = {"generate": 0, "prepare": 1, "fit": 2}
+_KIND_RANK = {"generate": 0, "variant": 0, "prepare": 1, "fit": 2}
 
 
 def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadline: Optional[float] = None,

@@ -21,6 +21,12 @@ Output of :func:`build_tables` (also written as ``tables.json``; :func:`tables_m
 * ``claims``: pairwise comparisons of strategies on the means and the per-scene wins (e.g. does
   ``progressive`` beat ``sequential`` on future CD), for the write-up.
 
+Scene variants (:mod:`toolkit.benchmark.variant_jobs`): a record of a variant carries
+``"variant": NAME`` (scene ``<scene>@NAME``). Its rows sit in the same table as the original
+scenes' rows, one row per strategy and variant (``row["variant"]``; rows of the scenes as
+generated have no such key and come first); claims are made within each variant; the ablation
+and the figures use the original scenes only.
+
 A fit that *diverged* (its parameters left the valid set, see
 :class:`~toolkit.benchmark.callbacks.DivergenceGuard`) is evaluated at its last valid estimate
 and counted in the means, and listed with the iteration and the reason; a job that *failed*
@@ -112,6 +118,7 @@ def record_from_run(run_dir: str | Path, meta: Optional[dict] = None) -> Optiona
         except Exception:  # noqa: BLE001 - an unknown (plugin) material: report every error
             optimized = [k for k in errors if k != "v0"]
     return {
+        **({"variant": meta["variant"]} if meta.get("variant") else {}),
         "scene": meta.get("scene") or str(run.parent.parent.name),
         "material": summary.get("material"),
         "strategy": meta.get("strategy") or bench.get("strategy") or run.name,
@@ -146,6 +153,8 @@ def collect_records(bench_dir: str | Path, only: Optional[Collection[tuple]] = N
         if not m or m.get("kind") != "fit":
             continue
         meta = {"scene": m.get("scene"), "strategy": m.get("strategy"), "cameras": m.get("cameras")}
+        if m.get("variant"):
+            meta["variant"] = m["variant"]
         if only is not None and (meta["scene"], meta["strategy"], meta["cameras"]) not in only:
             continue
         if m.get("status") == "done":
@@ -208,7 +217,8 @@ def build_tables(records: Sequence[dict], strategies: Optional[Sequence[str]] = 
         failures: failed jobs, listed with the tables.
         settings: what was run (stored as is under ``settings``).
         planned: ``{(material, cameras, strategy): number of scenes planned}`` as
-            ``"material|cameras|strategy"`` keys, to show ``done/planned``.
+            ``"material|cameras|strategy"`` keys (``"...|variant"`` for a variant's rows), to show
+            ``done/planned``.
     """
     out: dict = {"format": "projo4d-benchmark-tables", "version": 1, "settings": settings or {}, "tables": [],
                  "ablation": [], "claims": [], "failures": list(failures)}
@@ -223,21 +233,27 @@ def build_tables(records: Sequence[dict], strategies: Optional[Sequence[str]] = 
             cols = _columns(MAIN_METRICS, params)
             scenes = _order((r["scene"] for r in crecs), None)
             rows = []
-            for st in strat_order:
-                srecs = [r for r in crecs if r["strategy"] == st]
+            variants = _order((r.get("variant") or "" for r in crecs), [""])
+            for var, st in ((v, st) for v in variants for st in strat_order):
+                srecs = [r for r in crecs if r["strategy"] == st and (r.get("variant") or "") == var]
                 if not srecs:
                     continue
-                row = {"strategy": st, "n": len(srecs), "curriculum": srecs[0].get("curriculum"),
+                row = {"strategy": st, **({"variant": var} if var else {}), "n": len(srecs),
+                       "curriculum": srecs[0].get("curriculum"),
                        "diverged": [{"scene": r["scene"], **r["diverged"]} for r in srecs if r.get("diverged")],
                        "values": {c["key"]: mean_std(_value(r, c["key"]) for r in srecs) for c in cols}}
                 if planned is not None:
-                    row["planned"] = planned.get(f"{mat}|{cams}|{st}")
+                    row["planned"] = planned.get(f"{mat}|{cams}|{st}" + (f"|{var}" if var else ""))
                 rows.append(row)
             per_scene = {sc: {r["strategy"]: {c["key"]: _value(r, c["key"]) for c in cols} for r in crecs if r["scene"] == sc}
                          for sc in scenes}
             out["tables"].append({"material": mat, "cameras": cams, "columns": cols, "rows": rows, "scenes": scenes,
                                   "per_scene": per_scene})
-            out["claims"] += _claims(mat, cams, crecs, strat_order, cols)
+            for var in variants:
+                claims = _claims(mat, cams, [r for r in crecs if (r.get("variant") or "") == var], strat_order, cols)
+                out["claims"] += [{**c, "variant": var} for c in claims] if var else claims
+        mrecs = [r for r in mrecs if not r.get("variant")]  # the ablation: the scenes as generated
+        cam_counts = sorted({r["cameras"] for r in mrecs}, key=lambda c: (c is None, c))
         if len(cam_counts) > 1:
             cols = _columns(ABLATION_METRICS, params)
             cells = {}
@@ -326,8 +342,9 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
     for t in tables.get("tables", []):
         cols, rows = t["columns"], t["rows"]
         lines += [f"## {t['material']}, {t['cameras']} views", ""]
-        head = ["strategy", "n"] + [f"{c['label']} {_arrow(c)}" for c in cols]
-        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * len(cols)]
+        var = any(r.get("variant") for r in rows)  # a variant column only when variants ran
+        head = ["strategy"] + (["variant"] if var else []) + ["n"] + [f"{c['label']} {_arrow(c)}" for c in cols]
+        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * (2 + var) + "---:|" * len(cols)]
         best = {c["key"]: _best(rows, c) for c in cols}
         for r in rows:
             n = f"{r['n']}" + (f"/{r['planned']}" if r.get("planned") else "")
@@ -340,7 +357,7 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
                 if best[c["key"]] is not None and cell["mean"] == best[c["key"]]:
                     text = f"**{text}**"
                 cells.append(text)
-            lines.append("| " + " | ".join([r["strategy"], n] + cells) + " |")
+            lines.append("| " + " | ".join([r["strategy"]] + ([r.get("variant") or "(as generated)"] if var else []) + [n] + cells) + " |")
         lines.append("")
         sched = [f"`{r['strategy']}`: `{r['curriculum']}`" for r in rows if r.get("curriculum")]
         if sched:
@@ -349,12 +366,12 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
         head = ["metric", "strategy"] + t["scenes"]
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * len(t["scenes"])]
         for c in cols:
-            for r in rows:
+            for st in dict.fromkeys(r["strategy"] for r in rows):  # variants are scenes (<scene>@<variant>) here
                 vals = []
                 for sc in t["scenes"]:
-                    v = t["per_scene"].get(sc, {}).get(r["strategy"], {}).get(c["key"])
+                    v = t["per_scene"].get(sc, {}).get(st, {}).get(c["key"])
                     vals.append("-" if v is None else f"{v:.{c['decimals']}f}")
-                lines.append("| " + " | ".join([f"{c['label']} {_arrow(c)}", r["strategy"]] + vals) + " |")
+                lines.append("| " + " | ".join([f"{c['label']} {_arrow(c)}", st] + vals) + " |")
         lines.append("")
     for a in tables.get("ablation", []):
         lines += [f"## {a['material']}: number of cameras", ""]
@@ -372,7 +389,8 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
                   "|---|---|---|---|---:|---:|---|---:|"]
         for c in tables["claims"]:
             dec = 4 if c["metric"] in ("emd",) else 3
-            lines.append(f"| {c['material']} | {c['cameras']} | {c['a']} (A) vs {c['b']} (B) | {c['label']} | "
+            lab = c["material"] + (f" ({c['variant']})" if c.get("variant") else "")
+            lines.append(f"| {lab} | {c['cameras']} | {c['a']} (A) vs {c['b']} (B) | {c['label']} | "
                          f"{c['mean_a']:.{dec}f} | {c['mean_b']:.{dec}f} | {'yes' if c['a_better'] else 'no'} | "
                          f"{c['scene_wins_a']}/{c['scenes']} |")
         lines.append("")

@@ -5,6 +5,7 @@
     projo4d generate scene --shape torus --material neo_hookean --param E=1e5 --param nu=0.3 \\
         --v0 1,0,0 --effect air_drag.linear=0.5 --out DIR [--size small|full] [--seed S] [--device cpu]
     projo4d generate suite --out DIR --families neo_hookean sand --per-family 2 --size small --seed 0
+    projo4d generate variant SCENE_DIR --out DIR --mask-noise 0.2 --calibration-deg 0.5 --gamma 1.2
 
 Bad values are argparse errors (exit status 2) naming the value and the valid choices.
 """
@@ -88,13 +89,13 @@ def resolution(text: str) -> tuple[int, int]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """Add the ``scene`` and ``suite`` subcommands to the ``generate`` parser."""
+    """Add the ``scene``, ``suite`` and ``variant`` subcommands to the ``generate`` parser."""
     from materials import MATERIALS
     from toolkit.synthetic.shapes import SHAPES
     from toolkit.synthetic.spec import SIZE_PRESETS
     from toolkit.synthetic.suite import FAMILY_RANGES
 
-    sub = parser.add_subparsers(dest="what", metavar="{scene,suite}", required=True)
+    sub = parser.add_subparsers(dest="what", metavar="{scene,suite,variant}", required=True)
 
     p = sub.add_parser("scene", help="one scene", description="Simulate, render and write one synthetic scene.")
     p.set_defaults(_parser=p)
@@ -143,6 +144,49 @@ def configure(parser: argparse.ArgumentParser) -> None:
                    help="material families (default: all five)")
     s.add_argument("--per-family", type=int, default=2, help="scenes per family (default 2)")
     _common(s, SIZE_PRESETS)
+    _configure_variant(sub)
+
+
+def _configure_variant(sub) -> None:
+    """``generate variant``: options mirror :class:`toolkit.synthetic.variants.VariantSpec`."""
+    from toolkit.synthetic.variants import VariantSpec
+
+    d = VariantSpec()
+    v = sub.add_parser("variant", help="a perturbed copy of a scene folder",
+                       description="Write a copy of a scene folder imaged differently (mask noise, calibration error, "
+                                   "photometric change, frame-rate mismatch) with its ground truth kept correct; "
+                                   "definitions: toolkit.synthetic.variants.")
+    v.set_defaults(_parser=v)
+    v.add_argument("scene_dir", type=Path, metavar="SCENE_DIR", help="source scene (PAC-NeRF layout)")
+    v.add_argument("--out", type=Path, required=True, help="output folder (new, empty, or an earlier variant)")
+    v.add_argument("--mask-noise", type=float, default=d.mask_noise, metavar="P",
+                   help=f"fraction of mask boundary pixels flipped per image, [0, 1] (default {d.mask_noise:g})")
+    v.add_argument("--calibration-deg", type=float, default=d.calibration_deg, metavar="DEG",
+                   help=f"rotation of each recorded camera about its centre, degrees (default {d.calibration_deg:g})")
+    v.add_argument("--calibration-m", type=float, default=d.calibration_m, metavar="M",
+                   help=f"displacement of each recorded camera centre, metres (default {d.calibration_m:g})")
+    v.add_argument("--brightness", type=float, default=d.brightness, help=f"colour gain (default {d.brightness:g})")
+    v.add_argument("--gamma", type=float, default=d.gamma, help=f"colour power x -> x**gamma (default {d.gamma:g})")
+    v.add_argument("--tint", type=vector3, default=d.tint, metavar="R,G,B", help="per-channel gains (default 1,1,1)")
+    v.add_argument("--blur-px", type=float, default=d.blur_px, metavar="SIGMA",
+                   help=f"Gaussian blur of the colours, pixels (default {d.blur_px:g})")
+    v.add_argument("--noise-std", type=float, default=d.noise_std, metavar="STD",
+                   help=f"additive Gaussian colour noise, [0, 1] units (default {d.noise_std:g})")
+    v.add_argument("--frame-stride", type=int, default=d.frame_stride, metavar="K",
+                   help=f"keep frames 0, K, 2K, ... (default {d.frame_stride})")
+    v.add_argument("--fps-scale", type=float, default=d.fps_scale, metavar="S",
+                   help=f"the folder claims S times the true frame rate (default {d.fps_scale:g})")
+    v.add_argument("--seed", type=int, default=d.seed, help=f"seed of the random choices (default {d.seed})")
+    v.add_argument("--quiet", action="store_true", help="no output but errors")
+
+
+def variant_from_args(args: argparse.Namespace):
+    """The :class:`~toolkit.synthetic.variants.VariantSpec` of ``projo4d generate variant`` arguments."""
+    from toolkit.synthetic.variants import VariantSpec
+
+    return VariantSpec(mask_noise=args.mask_noise, calibration_deg=args.calibration_deg, calibration_m=args.calibration_m,
+                       brightness=args.brightness, gamma=args.gamma, tint=tuple(args.tint), blur_px=args.blur_px,
+                       noise_std=args.noise_std, frame_stride=args.frame_stride, fps_scale=args.fps_scale, seed=args.seed)
 
 
 def _common(p: argparse.ArgumentParser, presets: dict) -> None:
@@ -206,7 +250,7 @@ def spec_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``projo4d generate scene|suite``; returns the exit status."""
+    """Run ``projo4d generate scene|suite|variant``; returns the exit status."""
     from toolkit.mpm import SimulationError
     from toolkit.synthetic.errors import SyntheticError
 
@@ -214,6 +258,13 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger().setLevel(logging.WARNING if args.quiet else logging.INFO)  # the CLI installed a handler already
     parser = args._parser
     try:
+        if args.what == "variant":
+            from toolkit.synthetic.variants import make_variant
+
+            root = make_variant(args.scene_dir, args.out, variant_from_args(args))
+            if not args.quiet:
+                print(f"wrote {root} (variant of {args.scene_dir}; what was done: {root / 'variant.json'})")
+            return 0
         if args.what == "scene":
             from toolkit.synthetic.scene import generate_scene
 
