@@ -20,6 +20,11 @@ Usage::
     python benchmarks/uncertainty.py --out outputs/uncertainty            # 24 tiny CPU scenes
     python benchmarks/uncertainty.py --out outputs/uncertainty --scenes 6 # a quick look
     python benchmarks/uncertainty.py --out outputs/uncertainty_heldout --first 24   # 24 other scenes
+    python benchmarks/uncertainty.py --out outputs/unc_plasticine --material plasticine --scenes 12
+
+Other materials (``--material plasticine|newtonian|sand``): the same throws, shapes and cameras
+with the truths of :data:`OTHER_TRUTHS`, every optimizable parameter fitted from the material's
+default guess (after the coarse search), default learning rates.
 """
 
 from __future__ import annotations
@@ -42,9 +47,29 @@ TRUTH_DX = 0.02
 FIT = dict(dx=0.04, substeps=30, particle_spacing=0.02, curriculum="XAS:20@3,XASM:50")
 
 
-def scene_plan(n: int, first: int = 0) -> list[dict]:
-    """``n`` scenes from index ``first``, cycling through throws, stiffnesses, shapes, speeds and
-    camera azimuths (deterministic; ``first = 24`` gives 24 scenes unlike the first 24)."""
+#: truths of the other material families (``--material``), cycled like STIFFNESS; every optimizable
+#: parameter of the material is fitted from the material's default guess (coarse search first)
+OTHER_TRUTHS: dict[str, tuple[dict[str, float], ...]] = {
+    "plasticine": ({"E": 2e5, "nu": 0.3, "yield_stress": 3e3}, {"E": 5e5, "nu": 0.25, "yield_stress": 1e4},
+                   {"E": 1e5, "nu": 0.35, "yield_stress": 1e3}, {"E": 1e6, "nu": 0.3, "yield_stress": 2e4}),
+    "newtonian": ({"mu": 1.0, "kappa": 3e4}, {"mu": 10.0, "kappa": 1e5}, {"mu": 0.3, "kappa": 1e4}, {"mu": 3.0, "kappa": 5e4}),
+    "sand": ({"friction_angle": 25.0}, {"friction_angle": 35.0}, {"friction_angle": 40.0}, {"friction_angle": 30.0}),
+}
+
+
+def scene_plan(n: int, first: int = 0, material: str = "neo_hookean") -> list[dict]:
+    """``n`` scenes from index ``first``, cycling through throws, stiffnesses (or, for another
+    ``material``, the truths of :data:`OTHER_TRUTHS`), shapes, speeds and camera azimuths
+    (deterministic; ``first = 24`` gives 24 scenes unlike the first 24)."""
+    if material != "neo_hookean":
+        plans = scene_plan(n, first)
+        truths = OTHER_TRUTHS[material]
+        for k, plan in enumerate(plans):
+            i = first + k
+            plan.update(material=material, params=dict(truths[(i // 3) % len(truths)]),
+                        name=f"{i:02d}_{material}_{plan['throw']}_{plan['shape']}")
+            plan.pop("E"), plan.pop("nu")
+        return plans
     plans = []
     for i in range(first, first + n):
         throw = THROWS[i % 3]
@@ -59,7 +84,7 @@ def scene_plan(n: int, first: int = 0) -> list[dict]:
         else:
             v0 = (0.3 * sign, 1.1 + 0.05 * (i % 3), speed * 0.4)
         plans.append({"name": f"{i:02d}_{throw}_{shape}_E{E:.0e}", "throw": throw, "E": E, "nu": 0.3, "shape": shape,
-                      "v0": v0, "azimuth": 17.0 * i})
+                      "v0": v0, "azimuth": 17.0 * i, "material": "neo_hookean", "params": {"E": E, "nu": 0.3}})
     return plans
 
 
@@ -76,8 +101,8 @@ def generate(plan: dict, root: Path) -> Path:
     h = _height(plan["shape"])
     y = {"toss": 0.22, "slide": h / 2 + TRUTH_DX + 1e-4, "lob": h / 2 + 0.05}[plan["throw"]]
     spec = SceneSpec.preset(
-        "small", shape=plan["shape"], shape_size=dict(SHAPES[plan["shape"]]), material="neo_hookean",
-        params={"E": plan["E"], "nu": plan["nu"]}, v0=tuple(plan["v0"]), position=(0.0, y, 0.0), n_frames=8, n_train_frames=7,
+        "small", shape=plan["shape"], shape_size=dict(SHAPES[plan["shape"]]), material=plan.get("material", "neo_hookean"),
+        params=dict(plan.get("params") or {"E": plan["E"], "nu": plan["nu"]}), v0=tuple(plan["v0"]), position=(0.0, y, 0.0), n_frames=8, n_train_frames=7,
         width=32, height=32, dx=TRUTH_DX, particle_spacing=0.01, substeps=80, supersample=1, ground_plane=False,
         boundary="slip" if plan["throw"] == "slide" else "sticky", azimuth_offset_deg=plan["azimuth"],
     )
@@ -97,22 +122,26 @@ def run_scene(plan: dict, out: Path) -> dict:
     inp = oracle_input(root, particle_spacing=FIT["particle_spacing"], dx=FIT["dx"])
     sim = SimConfig(dx=FIT["dx"], substeps=FIT["substeps"], auto_dt_halving=True,
                     boundary="slip" if plan["throw"] == "slide" else "sticky")
-    module = InversePhysicsModule(inp, curriculum=FIT["curriculum"], sim=sim, renderer="warp",
-                                  initial_params={"nu": plan["nu"]}, optimize_params=["E"],
-                                  learning_rates={"velocity": 0.1, "E": 0.1})
+    material = plan.get("material", "neo_hookean")
+    if material == "neo_hookean":  # E alone, nu fixed at the truth (the calibration set of issue #24)
+        options = dict(initial_params={"nu": plan["nu"]}, optimize_params=["E"], learning_rates={"velocity": 0.1, "E": 0.1})
+    else:  # every optimizable parameter from the material's default guess, default learning rates
+        options = dict(material=material)
+    module = InversePhysicsModule(inp, curriculum=FIT["curriculum"], sim=sim, renderer="warp", **options)
     t = time.perf_counter()
     torch.manual_seed(0)
     fit_physics(module, out / "fits" / plan["name"], checkpoint_every=0, accelerator="cpu", progress=False)
     total = time.perf_counter() - t
     unc = module.uncertainty_result
-    truth = {"E": plan["E"], "v0_x": plan["v0"][0], "v0_y": plan["v0"][1], "v0_z": plan["v0"][2]}
+    truth = {**plan["params"], "v0_x": plan["v0"][0], "v0_y": plan["v0"][1], "v0_z": plan["v0"][2]}
     params = {}
     for name, p in unc["parameters"].items():
         tr = truth.get(name)
         params[name] = {k: p[k] for k in ("value", "low", "high", "label", "ratio", "note")}
         params[name]["truth"] = tr
         params[name]["covered"] = None if tr is None else bool(p["low"] - 1e-9 <= tr <= p["high"] + 1e-9)
-    return {"scene": plan["name"], **{k: plan[k] for k in ("throw", "E", "shape", "azimuth")}, "v0": list(plan["v0"]),
+    return {"scene": plan["name"], "material": material, "truth": plan["params"],
+            **{k: plan[k] for k in ("throw", "shape", "azimuth")}, "v0": list(plan["v0"]),
             "contact": module.contact_normal is not None, "parameters": params, "fit_s": round(total - unc["seconds"], 2),
             "uncertainty_s": round(unc["seconds"], 3), "rollouts": unc["rollouts"], "prior_step": unc["prior_step"].get("taken")}
 
@@ -145,6 +174,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=24)
     ap.add_argument("--first", type=int, default=0, help="index of the first scene (24: a held-out set)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--material", default="neo_hookean", choices=["neo_hookean", *OTHER_TRUTHS],
+                    help="material family (neo_hookean: E alone with nu fixed; others: every optimizable parameter)")
     args = ap.parse_args(argv)
     import torch
 
@@ -159,7 +190,7 @@ def main(argv=None) -> int:
                 rec = json.loads(line)
                 done[rec["scene"]] = rec
     results = []
-    for plan in scene_plan(args.scenes, args.first):
+    for plan in scene_plan(args.scenes, args.first, args.material):
         rec = done.get(plan["name"])
         if rec is None:
             try:

@@ -179,3 +179,18 @@ def test_learnt_gravity_recovers_a_weaker_pull(tmp_path):
     # measured: |g| = 7.60, 5.0 deg off vertical (a sideways part trades with v0_x in 6 frames)
     assert abs(magnitude - 7.0) < 0.25 * (9.8 - 7.0), g.tolist()  # at least 3/4 of the way from 9.8
     assert tilt < 10.0, g.tolist()
+
+
+def test_optimizer_steps_stay_inside_a_bounded_parameters_range(tiny_input, tmp_path):
+    """Adam steps of 50 degrees on a friction angle starting at 0.5 (valid range [0, 89]) leave
+    the range after one step whichever way the gradient points; each step is projected back onto
+    the bound, so the fit goes on (without the projection the next rollout stops with a
+    MaterialError) and ends on a bound."""
+    m = InversePhysicsModule(tiny_input, material="sand", curriculum="XASM:3", sim=fit_sim(), renderer="warp",
+                             initial_params={"friction_angle": 0.5}, material_init="given",
+                             learning_rates={"friction_angle": 50.0})
+    fit_physics(m, tmp_path, checkpoint_every=0, accelerator="cpu", progress=False)
+    phi = m.estimate()["params"]["friction_angle"]
+    assert phi in (0.0, 89.0)
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert all(0.0 <= r["param/friction_angle"] <= 89.0 for r in history)

@@ -263,6 +263,16 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
                 for i, n in enumerate(self.material.param_names)]
         return self.material.to_physical(torch.stack(raws))
 
+    def project_material_bounds(self) -> None:
+        """Clamp optimized ``linear`` material parameters into their valid range ``[low, high]``
+        (``log10`` and ``tanh`` ones cannot leave it): an optimizer step past a bound (a friction
+        angle below 0 degrees) would otherwise stop the next rollout with a MaterialError."""
+        with torch.no_grad():
+            for n, raw in self.material_raw.items():
+                p = self.material.param(n)
+                if p.transform == "linear":
+                    raw.clamp_(min=p.low, max=p.high)
+
     def estimate(self) -> dict:
         """Current estimate: material parameters (physical), v0, gravity, effects."""
         with torch.no_grad():
@@ -387,6 +397,7 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
                     pg["lr"] = pg["base_lr"] * factor
                 opts[gi].step()
             project_off_ground(self.v0.data, self.contact_normal)
+            self.project_material_bounds()
         if stage.groups & {"X", "S", "M"}:
             self._cached_positions = None
         self.curriculum_step += 1

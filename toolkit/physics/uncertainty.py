@@ -176,8 +176,13 @@ def _parameters(module) -> list[_Param]:
         t = module.material_raw[n]
         mean = float(module.material_raw_fixed[i])
         std = PRIOR_STD.get(p.transform) or max(abs(mean), 1.0)
-        out.append(_Param(n, p.transform, mean, std, (lambda t=t: float(t.detach())),
-                          (lambda v, t=t: t.data.fill_(v)), (lambda v, p=p: float(p.to_physical(torch.tensor(v))))))
+        if p.transform == "linear":  # bounded: probes and interval ends stay inside [low, high]
+            setter = (lambda v, t=t, p=p: t.data.fill_(min(max(v, p.low), p.high)))
+            physical = (lambda v, p=p: float(min(max(v, p.low), p.high)))
+        else:
+            setter = (lambda v, t=t: t.data.fill_(v))
+            physical = (lambda v, p=p: float(p.to_physical(torch.tensor(v))))
+        out.append(_Param(n, p.transform, mean, std, (lambda t=t: float(t.detach())), setter, physical))
     v0_init = getattr(module, "v0_start", None) or module.hparams.get("v0_init") or [0.0, 0.0, 0.0]
     normal = getattr(module, "contact_normal", None)
     for i, c in enumerate("xyz"):
@@ -295,29 +300,37 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
         spacing = float(module.input.particle_volume) ** (1 / 3)
         curv, grad_data, wide = np.zeros(K), np.zeros(K), np.zeros(K)
         for k in range(K):
-            cols, moved = [], []
+            cols, moved, at = [], [], []
             for sign in (1, -1):
                 params[k].set(theta[k] + sign * steps[k])
+                at.append(params[k].get())  # a bounded parameter's probe may be clamped: use where it went
                 pos = _simulate(module, n)
                 cols.append(residuals(pos))
                 moved.append(pos[:, module.surface_index].double())
                 rollouts += 1
-            J[:, k] = (cols[0] - cols[1]) / (2 * steps[k])
+            span = max(at[0] - at[1], 1e-12)
+            J[:, k] = (cols[0] - cols[1]) / span
             # the re-matched loss is bumpy below the point spacing: measure its curvature over a step
             # that moves the surface by about one spacing
-            speed = float((moved[0] - moved[1]).norm(dim=-1).max()) / (2 * steps[k])  # m per unit of theta_k
+            speed = float((moved[0] - moved[1]).norm(dim=-1).max()) / span  # m per unit of theta_k
             wide[k] = float(np.clip(spacing / max(speed, 1e-12), steps[k], WIDE_STEP_MAX[params[k].space]))
-            ssr = []
+            ssr, at = [], []
             for sign in (1, -1):
                 params[k].set(theta[k] + sign * wide[k])
+                at.append(params[k].get())
                 try:
                     ssr.append(_geometric_ssr(module, frames, _simulate(module, n)))
                 except Exception:  # the simulator rejects that state: treat as strongly disfavoured
                     ssr.append(math.inf)
                 rollouts += 1
             params[k].set(theta[k])
-            curv[k] = (ssr[0] - 2 * ssr0 + ssr[1]) / wide[k] ** 2 if all(map(math.isfinite, ssr)) else math.inf
-            grad_data[k] = (ssr[0] - ssr[1]) / (4 * wide[k]) if all(map(math.isfinite, ssr)) else 0.0
+            # three-point derivatives on the (possibly clamped, so unequal) spacings b above and a below
+            b, a = at[0] - theta[k], theta[k] - at[1]
+            if all(map(math.isfinite, ssr)) and a > 1e-12 and b > 1e-12:
+                curv[k] = 2 * ((ssr[0] - ssr0) / b - (ssr0 - ssr[1]) / a) / (a + b)
+                grad_data[k] = (ssr[0] - ssr[1]) / (2 * (a + b))
+            else:
+                curv[k], grad_data[k] = math.inf, 0.0
         J_np, r_np = J.cpu().numpy(), r0.cpu().numpy()
         # re-matching nearest neighbours lets points slide along the surface: the chamfer loss is
         # flatter than the fixed-match residuals say; scale each column to the measured curvature
