@@ -220,7 +220,7 @@ def test_cli_generate_variant(base, tmp_path, capsys):
 # ------------------------------------------------------------------------------------ benchmark
 def _spec(suite: Path, variants: dict):
     from toolkit.benchmark import BenchmarkSpec
-    from toolkit.benchmark.plan import scenes_to_generate
+    from toolkit.benchmark.scenes import scenes_to_generate
 
     scenes = scenes_to_generate(suite, ["neo_hookean"], 2, size="small")
     return BenchmarkSpec(scenes, ["sequential", "progressive"], cameras=[3], size="small",

@@ -31,11 +31,9 @@ from toolkit.benchmark.plan import (
     camera_subset,
     parse_strategy,
     plan_benchmark,
-    scenes_from_dirs,
-    scenes_from_suite,
-    scenes_to_generate,
 )
 from toolkit.benchmark.runner import run_benchmark
+from toolkit.benchmark.scenes import scenes_from_dirs, scenes_from_suite, scenes_to_generate
 
 __all__ = [
     "BENCH_SIZES",

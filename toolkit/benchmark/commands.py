@@ -160,10 +160,8 @@ def spec_from_args(args: argparse.Namespace):
         BenchmarkSpec,
         parse_strategy,
         scaled_stage0,
-        scenes_from_dirs,
-        scenes_from_suite,
-        scenes_to_generate,
     )
+    from toolkit.benchmark.scenes import scenes_from_dirs, scenes_from_suite, scenes_to_generate
 
     if bool(args.suite) == bool(args.scenes):
         raise BenchmarkError("give either --suite DIR or --scenes DIR [DIR ...]")
