@@ -194,3 +194,28 @@ def test_optimizer_steps_stay_inside_a_bounded_parameters_range(tiny_input, tmp_
     assert phi in (0.0, 89.0)
     history = json.loads((tmp_path / "history.json").read_text())
     assert all(0.0 <= r["param/friction_angle"] <= 89.0 for r in history)
+
+
+def test_sigterm_in_the_last_iteration_stops_as_an_interruption(tiny_input, tmp_path):
+    """A SIGTERM that lands in the fit's last iteration gets past CurriculumCheckpoint (which stops
+    only before the last one); Lightning then ends with SystemExit(None), exit status 0, and skips
+    on_train_end. fit_physics reports it as the interruption it is, with last.ckpt at the end."""
+    import os
+    import signal
+
+    from pytorch_lightning import Callback
+
+    from toolkit.checkpointing import RunInterrupted, graceful_interrupts
+    from toolkit.physics.fit import default_callbacks
+
+    class SigtermInLastIteration(Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            if pl_module.curriculum_step == pl_module.total_iterations - 1:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    m = _module(tiny_input, "XAS:1,XASM:2", material_init="given")
+    callbacks = default_callbacks(0, progress=False) + [SigtermInLastIteration()]
+    with graceful_interrupts(), pytest.raises(RunInterrupted, match="SIGTERM at iteration 3 of 3"):
+        fit_physics(m, tmp_path, checkpoint_every=0, accelerator="cpu", progress=False, callbacks=callbacks)
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["projo4d"]["curriculum_step"] == 3
+    assert not (tmp_path / "estimate.json").exists()  # on_train_end did not run: a rerun finishes it

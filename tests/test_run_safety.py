@@ -417,7 +417,9 @@ def test_sigterm_then_sigkill_then_rerun_matches_the_uninterrupted_run(scene, tm
     assert proc.returncode == 130, err[-2000:]
     assert "interrupted" in err and "rerun the same command to resume" in err
     step = torch.load(ckpts / "last.ckpt", weights_only=True)["projo4d"]["curriculum_step"]
-    assert 4 <= step < 10 and not (out / "summary.json").exists()
+    # normally mid-fit; on a loaded machine the signal may land in the last iteration, which also stops
+    # the run (exit 130) before the evaluation
+    assert 4 <= step <= 10 and not (out / "summary.json").exists()
 
     proc = _start(["run", str(scene), "--out", str(out), *flags])
     _wait_for(ckpts / "stage_01_end.ckpt", proc)  # the fit's end: evaluation is next

@@ -353,6 +353,16 @@ def run_pipeline(settings: RunSettings, mode: str = "auto") -> dict:
         return _run_steps(s)
 
 
+def _stop_if_interrupted(where: str) -> None:
+    """Honour a Ctrl-C / SIGTERM that arrived after the last point where a step checks for one
+    (e.g. during a fit's last iteration or its uncertainty): stop with exit status 130 instead of
+    going on to the next step."""
+    from toolkit.checkpointing import RunInterrupted, interrupt_requested
+
+    if interrupt_requested() is not None:
+        raise RunInterrupted(f"{interrupt_requested()} received: stopped {where}")
+
+
 def _run_steps(s: RunSettings) -> dict:
     from toolkit.physics.fit import fit_physics
     from toolkit.threads import configure_threads
@@ -365,11 +375,13 @@ def _run_steps(s: RunSettings) -> dict:
     device = _device(s.device)
 
     input_path = build_physics_input(s, run, timings)
+    _stop_if_interrupted("after stage 0 (physics_input.pt is saved)")
     module = make_physics_module(s, input_path)
     t = time.perf_counter()
     ckpt = newest_intact_checkpoint(run / "physics" / "checkpoints")
     if not _restore_finished_fit(module, run / "physics", ckpt):
         fit_physics(module, run / "physics", resume=ckpt, checkpoint_every=s.checkpoint_every, accelerator=_accelerator(device))
+    _stop_if_interrupted("after the physics fit (its result is saved); the evaluation is next")
     timings["physics_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t_all
     summary = evaluate_and_report(module, run, s, timings)

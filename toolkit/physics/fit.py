@@ -8,6 +8,9 @@ from typing import Optional
 
 import pytorch_lightning as pl
 from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
+from pytorch_lightning.utilities.exceptions import SIGTERMException
+
+from toolkit.checkpointing import RunInterrupted
 
 from toolkit.physics.callbacks import CurriculumCheckpoint, EstimateWriter, curriculum_progress_bar
 from toolkit.physics.module import InversePhysicsModule
@@ -72,5 +75,12 @@ def fit_physics(module: InversePhysicsModule, out_dir: str | Path, resume: Optio
         last = out_dir / "checkpoints" / "last.ckpt"
         resume = last if last.is_file() else None
     trainer = build_trainer(out_dir, checkpoint_every, accelerator, progress, **trainer_kwargs)
-    trainer.fit(module, ckpt_path=str(resume) if resume else None)
+    try:
+        trainer.fit(module, ckpt_path=str(resume) if resume else None)
+    except SIGTERMException as err:
+        # a SIGTERM in the fit's last iteration gets past CurriculumCheckpoint (which raises only before
+        # the last one); Lightning then ends the epoch with SystemExit(None), exit status 0, before
+        # on_train_end. That callback saved last.ckpt at the last iteration: report the interruption.
+        raise RunInterrupted(f"physics fit stopped by SIGTERM at iteration {module.curriculum_step} of "
+                             f"{module.total_iterations}; saved {out_dir / 'checkpoints' / 'last.ckpt'}") from err
     return module
