@@ -17,7 +17,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -56,7 +55,6 @@ def main(argv=None) -> int:
                                   initial_params={"nu": plan["nu"]}, optimize_params=["E"])
     with torch.no_grad():
         module.v0.copy_(torch.tensor(plan["v0"], dtype=module.v0.dtype))
-    probe = dataclasses.replace(module.stages[-1], groups=frozenset())
     cams = list(module.input.train_cameras)
     every = list(range(1, module.input.n_train))
     scored = [f for f in (2, 4, 6) if f < module.input.n_train]
@@ -70,11 +68,8 @@ def main(argv=None) -> int:
         params[i_e] = 10.0 ** log_e
         out = module.simulator.rollout(x0, module.v0.detach(), params, gravity=module.gravity.detach(),
                                        effect_params=module.effect_params.detach(), n_frames=max(every))
-        module._cached_positions = (x0, out.positions)
-        with torch.no_grad():
-            whole = {k: float(v) for k, v in module.losses(probe, cams, every).items()}
-            search = {k: float(v) for k, v in module.losses(probe, cams, scored).items()}
-        module._cached_positions = None
+        whole = module.probe_losses(out.positions, module.stages[-1], cams, every)
+        search = module.probe_losses(out.positions, module.stages[-1], cams, scored)
         print(json.dumps({"log10_E": log_e, "clip": whole, "search_frames": search}), flush=True)
     return 0
 

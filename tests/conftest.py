@@ -21,3 +21,15 @@ DEVICES = available_devices()
 def device(request) -> str:
     """Every test that takes ``device`` runs once per device present (cpu, and cuda:0 if any)."""
     return request.param
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module's tests (tiny tensors run faster so on shared cores); the
+    previous count is restored when the module ends. Use with ``pytest.mark.usefixtures``."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

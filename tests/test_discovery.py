@@ -25,16 +25,7 @@ DISCOVER = dict(emd=False)
 
 # one worker builds each scene once: the tests sharing a scene (ground_friction: three, none: two)
 # were spread over both workers, and each worker fitted and discovered the scene again
-pytestmark = pytest.mark.xdist_group("discovery")
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: one torch thread is faster on shared cores (restored after the module)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = [pytest.mark.xdist_group("discovery"), pytest.mark.usefixtures("one_torch_thread")]
 
 
 # session scope: a module fixture is torn down (and rebuilt) whenever the worker leaves the module

@@ -15,19 +15,10 @@ import pytest
 import torch
 
 # one worker builds each scene once (the fixture caches per effect; two workers would build twice)
-pytestmark = pytest.mark.xdist_group("discovery_images")
+pytestmark = [pytest.mark.xdist_group("discovery_images"), pytest.mark.usefixtures("one_torch_thread")]
 
 CANDIDATES = ["ground_friction", "air_drag", "extra_acceleration", "camera_pose"]
 DISCOVER = dict(candidates=CANDIDATES, top_k=3, emd=False)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: one torch thread is faster on shared cores (restored after the module)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 # Session scope, not module scope: under ``--dist loadgroup`` the worker that owns the group

@@ -34,7 +34,6 @@ logs a line and writes ``material_search.json`` to the run folder.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -137,7 +136,6 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     window = min(stage.frames or module.input.n_train, module.input.n_train)
     picked = score_frames(window, frames)
     cams = list(module.input.train_cameras)
-    probe_stage = dataclasses.replace(stage, groups=frozenset())
     axes = {n: search_axis(mat.param(n)) for n in names}
     base_phys = module.material_params().detach().clone()
     index = {n: mat.param_names.index(n) for n in names}
@@ -162,15 +160,12 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         note = None
         try:
             out = sim.rollout(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=max(picked))
-            module._cached_positions = (x0, out.positions)
-            with torch.no_grad():
-                loss = float(module.losses(probe_stage, cams, picked)["total"])
+            loss = module.probe_losses(out.positions, stage, cams, picked)["total"]
             if not math.isfinite(loss):
                 note, loss = "non-finite loss", math.inf
         except (SimulationError, MaterialError) as err:  # CFL/NaN after the halvings, out of the domain
             note, loss = f"{type(err).__name__}: {str(err)[:160]}", math.inf
         finally:
-            module._cached_positions = None
             sim.substeps_floor, sim.halvings = floor, halvings
         cache[key] = loss
         rec = {"params": phys, "loss": _finite(loss), "path": path}

@@ -17,6 +17,22 @@ class PredictionMixin:
     """Prediction and evaluation methods; they use the module's input, simulator, Gaussians and
     renderer (``self.input``, ``self.simulate``, ``self.gaussian_*``, ``self.renderer``, ...)."""
 
+    def probe_losses(self, positions: torch.Tensor, stage, cams: Sequence[int], frames: Sequence[int]) -> dict[str, float]:
+        """The fit's loss terms (:meth:`losses` of ``stage``: image and geometric) for simulated
+        ``positions`` ((T+1, N, 3), m, frame 0 first, covering ``max(frames)``) instead of the
+        module's own rollout; no gradients, nothing of the module changed. Used to score states the
+        fit is not in (the coarse search's candidates, the uncertainty's probes)."""
+        import dataclasses
+
+        probe = dataclasses.replace(stage, groups=frozenset())
+        x0 = (self.particles0 + self.particle_offset).detach()
+        self._cached_positions = (x0, positions)
+        try:
+            with torch.no_grad():
+                return {k: float(v) for k, v in self.losses(probe, cams, frames).items()}
+        finally:
+            self._cached_positions = None
+
     def parameter_errors(self, est: dict | None = None) -> dict[str, float]:
         """Errors against the ground truth when it is known (for logging; never used by the fit)."""
         gt = self._ground_truth

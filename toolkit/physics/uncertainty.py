@@ -448,24 +448,15 @@ def _fit_loss_rise(module, params, n: int, before: np.ndarray, after: np.ndarray
     of the last stage that optimizes the material, else the last stage: image and geometric terms,
     every training camera, every fitted frame after frame 0) from ``before`` to ``after`` (raw
     parameters); the parameters are left at ``after``. Returns ``(rise, rollouts)``."""
-    import dataclasses
-
     stages = list(module.stages)
     stage = next((s for s in reversed(stages) if "M" in s.groups), stages[-1])
-    probe = dataclasses.replace(stage, groups=frozenset())
     cams = list(module.input.train_cameras)
     fit_frames = list(range(1, module.input.n_train))
-    x0 = (module.particles0 + module.particle_offset).detach()
     losses = []
     for th in (before, after):
         for p, v in zip(params, th):
             p.set(float(v))
-        try:
-            module._cached_positions = (x0, _simulate(module, max([n, *fit_frames])))
-            with torch.no_grad():
-                losses.append(float(module.losses(probe, cams, fit_frames)["total"]))
-        finally:
-            module._cached_positions = None
+        losses.append(module.probe_losses(_simulate(module, max([n, *fit_frames])), stage, cams, fit_frames)["total"])
     rise = (losses[1] - losses[0]) / max(abs(losses[0]), 1e-30)
     return (rise if math.isfinite(rise) else math.inf), 2
 
