@@ -149,13 +149,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def _configure_variant(sub) -> None:
     """``generate variant``: options mirror :class:`toolkit.synthetic.variants.VariantSpec`."""
-    from toolkit.synthetic.variants import VariantSpec
+    from toolkit.synthetic.variants import RENDER_STYLES, VariantSpec
 
     d = VariantSpec()
     v = sub.add_parser("variant", help="a perturbed copy of a scene folder",
                        description="Write a copy of a scene folder imaged differently (mask noise, calibration error, "
-                                   "photometric change, frame-rate mismatch) with its ground truth kept correct; "
-                                   "definitions: toolkit.synthetic.variants.")
+                                   "photometric change, frame-rate mismatch, render style) with its ground truth kept "
+                                   "correct; definitions: toolkit.synthetic.variants.")
     v.set_defaults(_parser=v)
     v.add_argument("scene_dir", type=Path, metavar="SCENE_DIR", help="source scene (PAC-NeRF layout)")
     v.add_argument("--out", type=Path, required=True, help="output folder (new, empty, or an earlier variant)")
@@ -176,6 +176,9 @@ def _configure_variant(sub) -> None:
                    help=f"keep frames 0, K, 2K, ... (default {d.frame_stride})")
     v.add_argument("--fps-scale", type=float, default=d.fps_scale, metavar="S",
                    help=f"the folder claims S times the true frame rate (default {d.fps_scale:g})")
+    v.add_argument("--render-style", choices=RENDER_STYLES, default=d.render_style,
+                   help=f"'points': re-render every frame as z-buffered particle discs from the truth point clouds "
+                        f"(default {d.render_style})")
     v.add_argument("--seed", type=int, default=d.seed, help=f"seed of the random choices (default {d.seed})")
     v.add_argument("--quiet", action="store_true", help="no output but errors")
 
@@ -186,7 +189,8 @@ def variant_from_args(args: argparse.Namespace):
 
     return VariantSpec(mask_noise=args.mask_noise, calibration_deg=args.calibration_deg, calibration_m=args.calibration_m,
                        brightness=args.brightness, gamma=args.gamma, tint=tuple(args.tint), blur_px=args.blur_px,
-                       noise_std=args.noise_std, frame_stride=args.frame_stride, fps_scale=args.fps_scale, seed=args.seed)
+                       noise_std=args.noise_std, frame_stride=args.frame_stride, fps_scale=args.fps_scale, seed=args.seed,
+                       render_style=args.render_style)
 
 
 def _common(p: argparse.ArgumentParser, presets: dict) -> None:

@@ -3,10 +3,29 @@
 :func:`make_variant` reads a PAC-NeRF-layout folder (what :func:`~toolkit.synthetic.generate_scene`
 writes, see :mod:`toolkit.synthetic.layout`) and writes a copy whose *observations* differ from the
 generator's truth rendering while its ground truth stays correct for evaluation. What can change
-(:class:`VariantSpec`; every default leaves that aspect unchanged):
+(:class:`VariantSpec`; every default leaves that aspect unchanged), applied in this order
+(re-rendering first, then colours and masks):
 
+* **render style** (``render_style``, ``"source"`` or ``"points"``): with ``"points"`` every frame
+  image of every camera (not the plates) is re-rendered by :mod:`toolkit.synthetic.point_render`
+  from the truth particle cloud of that frame (``ground_truth.json`` ``point_clouds``; the same
+  particle has the same index in every frame): each particle is an opaque screen-space disc of
+  radius ``max(1 px, fx * r / z)`` with ``r = 0.5 * s`` (``s`` the median nearest-neighbour
+  distance of the frame-0 cloud, metres; ``z`` the particle's camera depth), z-buffered by ``z``,
+  seen with the *true* camera of the source (``all_data.json``: OpenGL ``c2w``, ``intrinsic``).
+  A particle's colour is the source's texture (``render.texture`` of its ground truth; else a
+  :class:`~toolkit.synthetic.texture.ProceduralTexture` seeded with ``seed``) at its frame-0
+  position, so the pattern moves with the material, times a sphere-impostor Lambert term with
+  the source's light (``render.light_direction``, ``render.ambient``; else
+  :class:`~toolkit.synthetic.mesh_render.Lighting`'s defaults). Alpha is coverage (255 in a
+  disc, else 0; no anti-aliasing), the colour outside the discs is the camera's background plate
+  (``r_{cam}_-1.png``; black without one), so the images keep the generator's RGBA convention and
+  their alpha is the new mask; when the source has ``a_`` mask files they are rewritten with
+  it. ``variant.json`` records the radius, spacing, texture, light and the pooled IoU of the new
+  masks (alpha >= 0.5) with the source's.
 * **mask noise** (``mask_noise`` = p in [0, 1]): the binary mask of an image is ``mask >= 0.5``
-  (the source's mask: its ``a_`` files, else the image's alpha). Its *boundary pixels* are the
+  (the source's mask: its ``a_`` files, else the image's alpha; the re-rendered alpha under
+  ``render_style="points"``). Its *boundary pixels* are the
   pixels with at least one 4-neighbour (up, down, left, right, inside the image) of the other
   value, on both sides of the edge. In every camera x frame, ``round(p * n_boundary)`` of them,
   drawn uniformly without replacement (seeded), are flipped: mask 1 where it was < 0.5, else 0;
@@ -66,10 +85,12 @@ import numpy as np
 from toolkit.atomic import write_json, write_with
 from toolkit.synthetic.errors import SyntheticError
 
-__all__ = ["VARIANT_FILE", "VARIANT_VERSION", "VariantError", "VariantSpec", "make_variant", "variant_is_complete",
+__all__ = ["RENDER_STYLES", "VARIANT_FILE", "VARIANT_VERSION", "VariantError", "VariantSpec", "make_variant", "variant_is_complete",
            "boundary_pixels", "perturb_pose", "rotation_angle_deg"]
 
 VARIANT_FILE = "variant.json"
+#: values of :attr:`VariantSpec.render_style`
+RENDER_STYLES = ("source", "points")
 #: bumped when :func:`make_variant` writes something else for the same source and spec
 VARIANT_VERSION = 1
 
@@ -94,6 +115,8 @@ class VariantSpec:
         frame_stride: keep every k-th frame (integer >= 1).
         fps_scale: the folder claims ``fps_scale`` times the true frame rate, > 0.
         seed: seed of every random choice (integer >= 0).
+        render_style: ``"source"`` (the images as rendered) or ``"points"`` (re-rendered as
+            particle discs, see the module docstring).
     """
 
     mask_noise: float = 0.0
@@ -107,6 +130,7 @@ class VariantSpec:
     frame_stride: int = 1
     fps_scale: float = 1.0
     seed: int = 0
+    render_style: str = "source"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tint", tuple(self.tint) if isinstance(self.tint, (list, tuple)) else self.tint)
@@ -129,6 +153,8 @@ class VariantSpec:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise VariantError(f"variant field {name!r} must be an integer >= {lo}, got {v!r}")
+        if self.render_style not in RENDER_STYLES:
+            raise VariantError(f"variant field 'render_style' must be one of {list(RENDER_STYLES)}, got {self.render_style!r}")
 
     @property
     def photometric(self) -> bool:
@@ -136,8 +162,12 @@ class VariantSpec:
         return (self.brightness, self.gamma, tuple(self.tint), self.blur_px, self.noise_std) != (1.0, 1.0, (1.0, 1.0, 1.0), 0.0, 0.0)
 
     def to_dict(self) -> dict:
+        """JSON-ready fields; ``render_style`` only when not ``"source"``, so the records (and the
+        benchmark's fingerprints) of variants made before that field existed stay valid."""
         d = asdict(self)
         d["tint"] = list(self.tint)
+        if d["render_style"] == "source":
+            del d["render_style"]
         return d
 
     @classmethod
@@ -298,11 +328,15 @@ def make_variant(scene_dir: str | Path, out_dir: str | Path, variant: VariantSpe
         raise VariantError(f"variant field 'frame_stride' must leave at least 2 of the {n_frames} frames, i.e. be in "
                            f"[1, {n_frames - 1}], got {k}")
     has_a = all((src / "data" / f"a_{c}_{f}.png").is_file() for c in cams for f in range(n_frames))
-    if variant.mask_noise > 0 and not has_a and alpha_of(read_raw(src / by_cam[cams[0]][0]["file_path"])) is None:
+    points = _point_style(src, gt, n_frames, variant) if variant.render_style == "points" else None
+    if variant.mask_noise > 0 and points is None and not has_a and alpha_of(
+            read_raw(src / by_cam[cams[0]][0]["file_path"])) is None:
         raise VariantError(f"variant field 'mask_noise' needs masks, but {src} has neither a_ mask files nor image alpha")
     _prepare_out(src, out)
 
     record: dict[str, Any] = {"cameras": {}, "masks": {"boundary_pixels": 0, "flipped_pixels": 0}}
+    if points is not None:
+        record["render"] = {**points[1], "mask_intersection": 0, "mask_union": 0}
     times = {f: float(by_cam[cams[0]][f]["time"]) for f in range(n_frames)}
     dt_new = (times[kept[1]] - times[kept[0]]) / variant.fps_scale
     new_entries = []
@@ -319,16 +353,20 @@ def make_variant(scene_dir: str | Path, out_dir: str | Path, variant: VariantSpe
             e = by_cam[c][old_f]
             name = f"r_{c}_{new_f}.png"
             src_img = src / e["file_path"]
-            if old_f == -2 or not variant.photometric:
+            drawn = None
+            if old_f >= 0 and points is not None:
+                drawn = _draw_points(points[0], src, by_cam[c], old_f, record["render"], read_raw, mask_of, has_a)
+            if drawn is None and (old_f == -2 or not variant.photometric):
                 _copy(src_img, out / "data" / name)
             else:
-                px = read_raw(src_img)
+                px = read_raw(src_img) if drawn is None else drawn
                 px = np.repeat(px[..., None], 3, -1) if px.ndim == 2 else px
                 px = px.copy()
-                px[..., :3] = _photometric(px[..., :3], variant, _rng(variant, c, old_f))
+                if variant.photometric:
+                    px[..., :3] = _photometric(px[..., :3], variant, _rng(variant, c, old_f))
                 _write_png(out / "data" / name, px)
             if old_f >= 0 and (variant.mask_noise > 0 or has_a):
-                _write_mask(src, out, c, old_f, new_f, has_a, variant, record["masks"], read_raw, mask_of)
+                _write_mask(src, out, c, old_f, new_f, has_a, variant, record["masks"], read_raw, mask_of, drawn)
             time = -dt_new if new_f == -1 else (times[old_f] / variant.fps_scale if new_f >= 0 else e["time"])
             new_entries.append({**e, "file_path": f"./data/{name}", "time": time, "c2w": c2w.tolist()})
     write_json(out / "all_data.json", new_entries)
@@ -343,18 +381,25 @@ def make_variant(scene_dir: str | Path, out_dir: str | Path, variant: VariantSpe
     record["frames"] = {"source_frames": kept, "fps_true": true_fps, "fps_claimed": true_fps * variant.fps_scale}
     mk = record["masks"]
     mk["flipped_fraction"] = mk["flipped_pixels"] / mk["boundary_pixels"] if mk["boundary_pixels"] else 0.0
+    if points is not None:
+        rr = record["render"]
+        rr["mask_iou"] = rr["mask_intersection"] / rr["mask_union"] if rr["mask_union"] else 1.0
     write_json(out / VARIANT_FILE, {"format": "projo4d-scene-variant", "version": VARIANT_VERSION,
                                     "source": str(src.resolve()), "variant": variant.to_dict(), "applied": record})
     return out
 
 
 def _write_mask(src: Path, out: Path, c: int, old_f: int, new_f: int, has_a: bool, v: VariantSpec, tally: dict,
-                read_raw, mask_of) -> None:
-    """``a_{c}_{new_f}.png`` (RGBA: the source image's colours, alpha = the possibly noisy mask)."""
-    mask_file = src / "data" / f"a_{c}_{old_f}.png"
-    img = read_raw(src / "data" / f"r_{c}_{old_f}.png")
-    rgb = img[..., :3] if img.ndim == 3 else np.repeat(img[..., None], 3, -1)
-    m = mask_of(read_raw(mask_file)) if has_a else img[..., 3].astype(np.float32) / 255.0
+                read_raw, mask_of, drawn: Optional[np.ndarray] = None) -> None:
+    """``a_{c}_{new_f}.png`` (RGBA: the source image's colours, alpha = the possibly noisy mask);
+    with ``drawn`` (a re-rendered RGBA frame) its colours and alpha instead."""
+    if drawn is not None:
+        rgb, m = drawn[..., :3], drawn[..., 3].astype(np.float32) / 255.0
+    else:
+        mask_file = src / "data" / f"a_{c}_{old_f}.png"
+        img = read_raw(src / "data" / f"r_{c}_{old_f}.png")
+        rgb = img[..., :3] if img.ndim == 3 else np.repeat(img[..., None], 3, -1)
+        m = mask_of(read_raw(mask_file)) if has_a else img[..., 3].astype(np.float32) / 255.0
     alpha = np.round(m * 255.0).astype(np.uint8)
     if v.mask_noise > 0:
         inside = m >= 0.5
@@ -366,6 +411,52 @@ def _write_mask(src: Path, out: Path, c: int, old_f: int, new_f: int, has_a: boo
         tally["boundary_pixels"] += len(idx)
         tally["flipped_pixels"] += n_flip
     _write_png(out / "data" / f"a_{c}_{new_f}.png", np.concatenate([rgb, alpha[..., None]], axis=-1))
+
+
+def _point_style(src: Path, gt: Optional[dict], n_frames: int, v: VariantSpec) -> tuple[Any, dict]:
+    """The :class:`~toolkit.synthetic.point_render.PointStyle` of ``render_style="points"`` and its record."""
+    from toolkit.data.ply import read_ply_points
+    from toolkit.synthetic.point_render import PointStyle
+
+    clouds = (gt or {}).get("point_clouds") or []
+    if len(clouds) != n_frames:
+        raise VariantError(f"variant field 'render_style' = 'points' needs the truth point cloud of each of the {n_frames} "
+                           f"frames (ground_truth.json 'point_clouds'), but {src} lists {len(clouds)}")
+    try:
+        pts = [read_ply_points(Path(p) if Path(p).is_absolute() else src / p) for p in clouds]
+    except Exception as err:  # noqa: BLE001 - any unreadable cloud is the same user error
+        raise VariantError(f"variant field 'render_style' = 'points': cannot read the truth point clouds of {src}: "
+                           f"{err}") from None
+    try:
+        style = PointStyle.from_render_record(pts, (gt or {}).get("render") or {}, v.seed)
+    except ValueError as err:
+        raise VariantError(f"variant field 'render_style' = 'points' cannot draw the particles of {src}: {err}") from None
+    return style, style.record()
+
+
+def _draw_points(style, src: Path, entries: dict[int, dict], frame: int, tally: dict, read_raw, mask_of,
+                 has_a: bool) -> np.ndarray:
+    """(H, W, 4) uint8: source frame ``frame`` of one camera (``entries``: frame -> all_data entry)
+    re-rendered as particle discs over its plate; adds to the mask IoU tally."""
+    from toolkit.synthetic.point_render import camera_matrices
+
+    e = entries[frame]
+    src_img = read_raw(src / e["file_path"])
+    H, W = src_img.shape[:2]
+    plate = read_raw(src / entries[-1]["file_path"]) if -1 in entries else None
+    if plate is not None:
+        plate = np.repeat(plate[..., None], 3, -1) if plate.ndim == 2 else plate[..., :3]
+    K, w2c = camera_matrices(e["c2w"], e["intrinsic"], W, H)
+    drawn = style.render(frame, K, w2c, W, H, plate)
+    cam, _ = (int(x) for x in Path(e["file_path"]).stem.split("_")[1:3])
+    a_file = src / "data" / f"a_{cam}_{frame}.png"
+    alpha = src_img[..., -1] / 255.0 if src_img.ndim == 3 and src_img.shape[-1] in (2, 4) else None
+    old = mask_of(read_raw(a_file)) if has_a else alpha
+    if old is not None:
+        new_m, old_m = drawn[..., 3] >= 128, old >= 0.5
+        tally["mask_intersection"] += int((new_m & old_m).sum())
+        tally["mask_union"] += int((new_m | old_m).sum())
+    return drawn
 
 
 def _write_ground_truth(src: Path, out: Path, gt: dict, kept: list[int], n_frames: int, v: VariantSpec) -> None:
