@@ -483,3 +483,47 @@ def test_divergence_guard_restores_the_last_valid_parameters():
     with torch.no_grad():
         m.v0[0] = float("nan")
     assert "v0" in DivergenceGuard.check(m)
+
+
+def test_scheduler_takes_the_kth_scene_of_every_family_before_the_next(tmp_path):
+    """A chunk that ends early must leave every family with as many finished scenes: with one job
+    at a time, fits start scene 0 of each material, then scene 1 of each, in planning order within."""
+    from toolkit.benchmark.executors import InlineExecutor
+    from toolkit.benchmark.scheduler import run_jobs
+
+    jobs = [{"id": f"fit:{m}/{k}:{s}", "kind": "fit", "material": m, "scene": f"{m}/{k}", "folder": str(tmp_path / m / str(k) / s),
+             "fingerprint": "x", "depends": []}
+            for m in ("elastic", "sand") for k in range(2) for s in ("joint", "progressive")]
+    starts: list[str] = []
+    run_jobs(jobs, InlineExecutor(fn="tests.bench_helpers:sleepy_job"),
+             lambda e, **f: starts.append(f["job"]) if e == "start" else None, heartbeat=100, min_start_s=0)
+    assert starts == ["fit:elastic/0:joint", "fit:elastic/0:progressive", "fit:sand/0:joint", "fit:sand/0:progressive",
+                      "fit:elastic/1:joint", "fit:elastic/1:progressive", "fit:sand/1:joint", "fit:sand/1:progressive"]
+
+
+def test_scheduler_does_not_rebuild_what_only_finished_jobs_need(tmp_path):
+    """A scene whose fits are all done (their results restored from another machine) is neither
+    generated nor prepared again; a scene with one fit left still is."""
+    from toolkit.benchmark.executors import InlineExecutor
+    from toolkit.benchmark.scheduler import run_jobs
+
+    jobs = []
+    for k in range(2):
+        jobs += [{"id": f"generate:{k}", "kind": "generate", "scene": str(k), "material": "m", "folder": str(tmp_path / f"g{k}"),
+                  "fingerprint": "x", "depends": []},
+                 {"id": f"prepare:{k}", "kind": "prepare", "scene": str(k), "material": "m", "folder": str(tmp_path / f"p{k}"),
+                  "fingerprint": "x", "depends": [f"generate:{k}"]}]
+        jobs += [{"id": f"fit:{k}:{s}", "kind": "fit", "scene": str(k), "material": "m", "folder": str(tmp_path / f"f{k}{s}"),
+                  "fingerprint": "x", "depends": [f"prepare:{k}"]} for s in ("a", "b")]
+    done = {"fit:0:a", "fit:0:b", "fit:1:a"}
+    import toolkit.benchmark.jobs as jobs_module
+
+    real = jobs_module.job_is_done
+    jobs_module.job_is_done = lambda j: j["id"] in done
+    try:
+        starts: list[str] = []
+        run_jobs(jobs, InlineExecutor(fn="tests.bench_helpers:sleepy_job"),
+                 lambda e, **f: starts.append(f["job"]) if e == "start" else None, heartbeat=100, min_start_s=0)
+    finally:
+        jobs_module.job_is_done = real
+    assert starts == ["generate:1", "prepare:1", "fit:1:b"]

@@ -42,6 +42,37 @@ class Events:
 _KIND_RANK = {"generate": 0, "variant": 0, "prepare": 1, "fit": 2}
 
 
+def _interleaved_rank(jobs: Sequence[dict]) -> dict[str, tuple[int, int]]:
+    """Priority within a kind: the k-th scene of every material before the (k+1)-th of any, then
+    planning order. A chunk that ends early leaves every family with the same number of scenes."""
+    seen: dict[str, list[str]] = {}
+    rank = {}
+    for i, j in enumerate(jobs):
+        scenes = seen.setdefault(str(j.get("material")), [])
+        if j.get("scene") not in scenes:
+            scenes.append(j.get("scene"))
+        rank[j["id"]] = (scenes.index(j.get("scene")), i)
+    return rank
+
+
+def _skip_unneeded(jobs: Sequence[dict], state: dict[str, str], emit: Callable[..., dict]) -> None:
+    """Mark ``done`` a pending job whose dependants are all done already (a scene whose fits
+    finished in an earlier chunk, or on another machine, is not generated or prepared again)."""
+    dependants: dict[str, list[str]] = {}
+    for j in jobs:
+        for d in j.get("depends", []):
+            dependants.setdefault(d, []).append(j["id"])
+    changed = True
+    while changed:
+        changed = False
+        for j in jobs:
+            users = dependants.get(j["id"])
+            if state[j["id"]] == "pending" and users and all(state.get(u) == "done" for u in users):
+                state[j["id"]] = "done"
+                emit("skip_unneeded", job=j["id"], reason="every job that needs it is done")
+                changed = True
+
+
 def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadline: Optional[float] = None,
              grace: float = 45.0, retry_failed: bool = False, heartbeat: float = 60.0,
              estimate: Optional[Callable[[dict], tuple[float, str]]] = None,
@@ -65,7 +96,7 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
     """
     from toolkit.benchmark.jobs import job_is_done, read_marker
 
-    rank = {j["id"]: i for i, j in enumerate(jobs)}
+    rank = _interleaved_rank(jobs)
     state: dict[str, str] = {}
     for j in jobs:
         if job_is_done(j):
@@ -77,6 +108,7 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
             emit("skip_failed", job=j["id"], error=m.get("error"), hint="pass --retry-failed to run it again")
         else:
             state[j["id"]] = "pending"
+    _skip_unneeded(jobs, state, emit)
     in_flight: dict = {}
     started: dict[str, float] = {}
     ran = 0
