@@ -90,18 +90,20 @@ model:
   ssim_weight: 0.4
   warmup_fraction: 0.3
   embedding_neighbours: 4
+  embedding: affine
 trainer: {accelerator: cpu, default_root_dir: RUN}
 """)
     s = _settings(str(tmp_path / "scene"), "--config", str(config), "--seed", "7")
     assert s.model_options == {"effects": {"air_drag": {"linear": 0.5}}, "v0_init": [0.1, -0.2, 0.3],
-                               "lambda_image": 0.25, "ssim_weight": 0.4, "warmup_fraction": 0.3, "embedding_neighbours": 4}
+                               "lambda_image": 0.25, "ssim_weight": 0.4, "warmup_fraction": 0.3, "embedding_neighbours": 4,
+                               "embedding": "affine"}
     assert (s.seed, s.device, s.optimize_gravity, s.lambda_geometry) == (7, "cpu", True, 0.5)  # the flag wins
     assert s.out == str(Path("runs") / "scene")  # not trainer.default_root_dir (projo4d fit's folder)
     m = make_physics_module(s, path)
     assert (m.lambda_image, m.ssim_weight, m.warmup_fraction, m.lambda_geometry) == (0.25, 0.4, 0.3, 0.5)
     assert m.effect_init == {"air_drag": {"linear": 0.5}} and m.optimize_gravity is True
     assert m.v0.detach().tolist() == pytest.approx([0.1, -0.2, 0.3])
-    assert m.embed_index.shape[-1] == 4 and m.seed == 7  # each Gaussian follows 4 particles
+    assert m.embed_index.shape[-1] == 24 and m.seed == 7  # affine: at least 24 neighbours, whatever was asked
 
 
 @pytest.mark.parametrize("text, where, key", [
@@ -124,6 +126,7 @@ def test_an_unknown_key_fails_in_one_line_naming_it_and_the_valid_ones(tmp_path,
     ("model: {v0_init: [1, 2]}\n", "model_options.v0_init", "3 finite numbers"),
     ("model: {material_init: grid}\n", "model_options.material_init", "'search'"),
     ("model: {embedding_neighbours: 0}\n", "model_options.embedding_neighbours", ">= 1"),
+    ("model: {embedding: nearest}\n", "model_options.embedding", "'idw'"),
     ("model: {input_path: x.pt}\n", "model.input_path", "writes the physics input itself"),
     ("trainer: {accelerator: tpu}\n", "trainer.accelerator", "auto, cpu, gpu, cuda"),
     ("foo: 1\n", "foo", "unknown field"),

@@ -69,7 +69,7 @@ def module_with_effect(refit: Refit):
         optimize_gravity=m.optimize_gravity,
         lambda_image=m.lambda_image, lambda_geometry=m.lambda_geometry, ssim_weight=m.ssim_weight,
         learning_rates=hp.get("learning_rates"), warmup_fraction=m.warmup_fraction, seed=m.seed,
-        embedding_neighbours=hp.get("embedding_neighbours", 8),
+        embedding_neighbours=hp.get("embedding_neighbours", 8), embedding=hp.get("embedding", "idw"),
     )
     shift = torch.tensor(phys["shift"], dtype=torch.float32)
     with torch.no_grad():

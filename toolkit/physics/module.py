@@ -101,7 +101,10 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
             (:mod:`toolkit.physics.rates`), so no scene needs hand-set rates.
         warmup_fraction: warm-up part of each group's cosine schedule.
         seed: seed of the batch sampling.
-        embedding_neighbours: particles each Gaussian follows.
+        embedding_neighbours: particles each Gaussian follows (``"affine"``: at least 24).
+        embedding: how Gaussians follow them: ``"idw"`` (inverse-distance average of the
+            displacements, default) or ``"affine"`` (exact for any locally affine motion); see
+            :mod:`toolkit.physics.embedding`.
     """
 
     def __init__(
@@ -125,6 +128,7 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         warmup_fraction: float = 0.1,
         seed: int = 0,
         embedding_neighbours: int = 8,
+        embedding: str = "idw",
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -182,7 +186,7 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         self.register_buffer("gaussian_means0", inp.gaussians.means.float().clone())
         self.particle_offset = nn.Parameter(torch.zeros_like(self.particles0))
         self.gaussian_offset = nn.Parameter(torch.zeros_like(self.gaussian_means0))
-        index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours)
+        index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours, mode=embedding)
         self.register_buffer("embed_index", index)
         self.register_buffer("embed_weight", weight)
         # simulated particles compared with the stage-0 surface: those near it at frame 0
@@ -289,6 +293,14 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
 
         self.uncertainty_result = estimate_uncertainty(self, **options).to_dict()
         return self.uncertainty_result
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a run saved with another embedding (neighbour count or mode) keeps its own: the buffers take its shape
+        for name in ("embed_index", "embed_weight"):
+            saved = state_dict.get(prefix + name)
+            if saved is not None and saved.shape != getattr(self, name).shape:
+                setattr(self, name, torch.empty_like(saved, device=getattr(self, name).device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def gaussians_at(self, positions: torch.Tensor, x0: torch.Tensor, appearance_grad: bool = True) -> list[Gaussians]:
         """Gaussians for each frame of ``positions`` (F, N, 3) simulated from ``x0``."""
