@@ -1,0 +1,71 @@
+"""The fit's own loss along one material parameter, for a finished run, at the true state.
+
+Loads a run folder's fitted module (its appearance, positions and embedding as fitted), puts the
+initial velocity and every material parameter at the scene's ground truth, then varies one
+parameter and prints the image and geometric terms over the training frames (every training
+camera), total and per frame. Shows which frames and which term pull an estimate away from the
+truth (docs/results/five_families_small.md, "every family is fitted too soft").
+
+Output: one JSON line of settings, then one per value: ``{param: value, "geometry", "image",
+"image_per_frame"}`` (frames 1 .. n_train-1).
+
+Usage::
+
+    projo4d run SCENE --geometry oracle --out RUN ...                      # a fitted run of a generated scene
+    python benchmarks/fitted_landscape.py RUN mu 0.01 0.05 0.3 1 3.5 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", help="a finished run folder (physics/checkpoints/last.ckpt) of a scene with ground truth")
+    ap.add_argument("param", help="material parameter to vary (the others stay at the truth)")
+    ap.add_argument("values", type=float, nargs="+", help="physical values of the parameter")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    from toolkit.pipeline import load_fitted_module
+
+    module = load_fitted_module(args.run, device="cpu")
+    gt = module.input.ground_truth
+    if not gt or not gt.get("params"):
+        raise SystemExit(f"{args.run}: the scene has no ground truth to sweep around")
+    names = list(module.material.param_names)
+    if args.param not in names:
+        raise SystemExit(f"{args.param!r} is not a parameter of {module.material.registry_name}: {', '.join(names)}")
+    with torch.no_grad():
+        module.v0.copy_(torch.tensor(gt["v0"], dtype=module.v0.dtype))
+    base = module.material_params().detach().clone()
+    for j, name in enumerate(names):
+        if name in gt["params"]:
+            base[j] = gt["params"][name]
+    cams = list(module.input.train_cameras)
+    frames = list(range(1, module.input.n_train))
+    x0 = (module.particles0 + module.particle_offset).detach()
+    print(json.dumps({"run": str(args.run), "truth": gt["params"], "param": args.param, "frames": frames}), flush=True)
+    for value in args.values:
+        params = base.clone()
+        params[names.index(args.param)] = value
+        out = module.simulator.rollout(x0, module.v0.detach(), params, gravity=module.gravity.detach(),
+                                       effect_params=module.effect_params.detach(), n_frames=max(frames))
+        whole = module.probe_losses(out.positions, module.stages[-1], cams, frames)
+        per = [module.probe_losses(out.positions, module.stages[-1], cams, [f])["image"] for f in frames]
+        print(json.dumps({args.param: value, "geometry": whole["geometry"], "image": whole["image"],
+                          "image_per_frame": [round(x, 6) for x in per]}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
