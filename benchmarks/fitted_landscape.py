@@ -6,6 +6,10 @@ parameter and prints the image and geometric terms over the training frames (eve
 camera), total and per frame. Shows which frames and which term pull an estimate away from the
 truth (docs/results/five_families_small.md, "every family is fitted too soft").
 
+With ``--deform-covariances`` every Gaussian's covariance is also deformed by the affine motion of
+its 24 nearest particles, ``A Sigma A^T`` (:func:`toolkit.physics.embedding.local_deformation`),
+which the fit itself does not do yet: it shows where the image term's minimum would be if it did.
+
 Output: one JSON line of settings, then one per value: ``{param: value, "geometry", "image",
 "image_per_frame"}`` (frames 1 .. n_train-1).
 
@@ -13,6 +17,7 @@ Usage::
 
     projo4d run SCENE --geometry oracle --out RUN ...                      # a fitted run of a generated scene
     python benchmarks/fitted_landscape.py RUN mu 0.01 0.05 0.3 1 3.5 10
+    python benchmarks/fitted_landscape.py RUN mu 0.05 0.5 3.5 10 --deform-covariances
 """
 
 from __future__ import annotations
@@ -32,6 +37,8 @@ def main(argv=None) -> int:
     ap.add_argument("run", help="a finished run folder (physics/checkpoints/last.ckpt) of a scene with ground truth")
     ap.add_argument("param", help="material parameter to vary (the others stay at the truth)")
     ap.add_argument("values", type=float, nargs="+", help="physical values of the parameter")
+    ap.add_argument("--deform-covariances", action="store_true",
+                    help="deform each Gaussian's covariance with its neighbourhood's affine motion (not what the fit does)")
     args = ap.parse_args(argv)
 
     import torch
@@ -54,7 +61,10 @@ def main(argv=None) -> int:
     cams = list(module.input.train_cameras)
     frames = list(range(1, module.input.n_train))
     x0 = (module.particles0 + module.particle_offset).detach()
-    print(json.dumps({"run": str(args.run), "truth": gt["params"], "param": args.param, "frames": frames}), flush=True)
+    if args.deform_covariances:
+        _deform_covariances(module, x0)
+    print(json.dumps({"run": str(args.run), "truth": gt["params"], "param": args.param, "frames": frames,
+                      "deform_covariances": args.deform_covariances}), flush=True)
     for value in args.values:
         params = base.clone()
         params[names.index(args.param)] = value
@@ -65,6 +75,34 @@ def main(argv=None) -> int:
         print(json.dumps({args.param: value, "geometry": whole["geometry"], "image": whole["image"],
                           "image_per_frame": [round(x, 6) for x in per]}), flush=True)
     return 0
+
+
+def _deform_covariances(module, x0) -> None:
+    """Wrap ``module.gaussians_at`` so every Gaussian's covariance becomes ``A R S S R^T A^T``."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from toolkit.physics.embedding import local_deformation
+
+    idx, grad = local_deformation((module.gaussian_means0 + module.gaussian_offset).detach(), x0)
+    q = module.quats.detach().double()
+    R = torch.as_tensor(Rotation.from_quat(torch.cat([q[:, 1:], q[:, :1]], 1).numpy()).as_matrix())
+    RS = R * torch.exp(module.log_scales.detach().double())[:, None, :]
+    original = module.gaussians_at
+
+    def gaussians_at(positions, x0_, appearance_grad=True):
+        out = []
+        for p, g in zip(positions, original(positions, x0_, appearance_grad)):
+            A = torch.einsum("gki,gkj->gij", p.detach().double()[idx], grad.double())
+            M = A @ RS
+            lam, U = torch.linalg.eigh(M @ M.transpose(1, 2))
+            U[torch.linalg.det(U) < 0, :, 0] *= -1
+            xyzw = torch.as_tensor(Rotation.from_matrix(U.numpy()).as_quat())
+            quats = torch.cat([xyzw[:, 3:], xyzw[:, :3]], 1).float()
+            out.append(g.replace(log_scales=(0.5 * torch.log(lam.clamp_min(1e-14))).float(), quats=quats))
+        return out
+
+    module.gaussians_at = gaussians_at
 
 
 if __name__ == "__main__":

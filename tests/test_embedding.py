@@ -110,3 +110,19 @@ def test_a_run_saved_with_another_embedding_keeps_it(tmp_path):
     assert old.embed_index.shape[1] == 8 and new.embed_index.shape[1] == AFFINE_MIN_NEIGHBOURS
     new.load_state_dict(old.state_dict())
     assert torch.equal(new.embed_index, old.embed_index) and torch.equal(new.embed_weight, old.embed_weight)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_local_deformation_is_the_affine_map_of_the_neighbourhood(seed):
+    """Under x -> A x + b every Gaussian's local deformation gradient is A (inside the body and
+    1.5 spacings outside it), and the identity at frame 0."""
+    from toolkit.physics.embedding import local_deformation
+
+    rng = np.random.default_rng(seed)
+    P = _box_particles()
+    V = _gaussians(P, rng, n=100)
+    A = np.eye(3) + rng.normal(0.0, 0.3, size=(3, 3))
+    idx, grad = local_deformation(torch.tensor(V), torch.tensor(P))
+    for positions, expected in ((P, np.eye(3)), (P @ A.T + rng.normal(size=3), A)):
+        got = torch.einsum("gki,gkj->gij", torch.tensor(positions, dtype=torch.float32)[idx], grad).numpy()
+        np.testing.assert_allclose(got, np.broadcast_to(expected, got.shape), atol=1e-3)  # measured 3e-4 (ridge)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-__all__ = ["embed", "carry", "EMBEDDING_MODES", "AFFINE_MIN_NEIGHBOURS"]
+__all__ = ["embed", "carry", "local_deformation", "EMBEDDING_MODES", "AFFINE_MIN_NEIGHBOURS"]
 
 #: values of :func:`embed`'s ``mode``
 EMBEDDING_MODES = ("affine", "idw")
@@ -78,10 +78,11 @@ def embed(gaussian_means: torch.Tensor, particles: torch.Tensor, k: int = 8, eps
     return torch.as_tensor(idx, dtype=torch.int64), torch.as_tensor(w, dtype=torch.float32)
 
 
-def _affine_weights(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndarray, ridge: float) -> np.ndarray:
-    """Coefficients ``c_vj = w_j [p_j - v, 1]^T M^-1 e_4`` with ``M = sum_j w_j [p_j - v, 1][p_j - v, 1]^T``
-    and ``w_j = (1 - d_j^2 / R^2)^3`` (R just beyond the k-th neighbour): the value at ``v`` of the
-    weighted least-squares affine fit, as weights of the neighbours' positions."""
+def _affine_fit(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndarray, ridge: float) -> np.ndarray:
+    """Rows of the weighted least-squares affine fit around each ``v``: ``(G, k, 4)`` coefficients
+    ``Q_vj = w_j M^-1 [p_j - v, 1]`` with ``M = sum_j w_j [p_j - v, 1][p_j - v, 1]^T`` and
+    ``w_j = (1 - d_j^2 / R^2)^3`` (R just beyond the k-th neighbour). For neighbour positions
+    ``y_j``, the fitted affine map is ``y(x) = sum_j y_j (Q_vj[:3] . (x - v) + Q_vj[3])``."""
     k = idx.shape[1]
     R = 1.05 * dist[:, -1:] + 1e-12
     w = (1.0 - (dist / R) ** 2) ** 3 + 1e-9
@@ -90,10 +91,43 @@ def _affine_weights(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndar
     reg = ridge * (R[:, 0] ** 2) * w.sum(axis=1)
     for d in range(3):
         M[:, d, d] += reg
-    e4 = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (len(V), 4))[..., None]
-    q = np.linalg.solve(M, e4)[..., 0]
-    c = w * np.einsum("gki,gi->gk", X, q)
+    return w[..., None] * np.linalg.solve(M[:, None], X[..., None])[..., 0]
+
+
+def _affine_weights(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndarray, ridge: float) -> np.ndarray:
+    """The affine fit's value at ``v`` as weights of the neighbours' positions, ``(G, k)``."""
+    c = _affine_fit(P, V, idx, dist, ridge)[..., 3]
     return c / c.sum(axis=1, keepdims=True)
+
+
+def local_deformation(gaussian_means: torch.Tensor, particles0: torch.Tensor, k: int = AFFINE_MIN_NEIGHBOURS,
+                      ridge: float = 1e-6):
+    """Each Gaussian's local deformation gradient as a fixed linear map of the particle positions.
+
+    Args:
+        gaussian_means: (G, 3) means at frame 0, metres.
+        particles0: (N, 3) particle positions at frame 0, metres (N >= 4).
+        k: neighbours of the fit (at least 4).
+        ridge: see :func:`embed`.
+
+    Returns:
+        ``(index (G, k) int64, gradient (G, k, 3) float32)``: for particle positions ``p`` (N, 3)
+        at any frame, ``A_g = sum_k p[index[g, k]] outer gradient[g, k]`` (3x3) is the gradient of the
+        weighted least-squares affine map from the frame-0 neighbourhood to the current one: exactly
+        ``A`` when the neighbourhood moved by ``x -> A x + b``, the identity at frame 0. A Gaussian's
+        covariance follows the material as ``A Sigma A^T``.
+    """
+    n = particles0.shape[0]
+    if n < 4:
+        raise ValueError(f"a local deformation needs at least 4 particles, got {n}")
+    k = min(max(k, 4), n)
+    P = particles0.detach().cpu().numpy().astype(np.float64)
+    V = gaussian_means.detach().cpu().numpy().astype(np.float64)
+    dist, idx = cKDTree(P).query(V, k=k)
+    dist = np.asarray(dist).reshape(len(V), k)
+    idx = np.asarray(idx).reshape(len(V), k)
+    grad = _affine_fit(P, V, idx, dist, ridge)[..., :3]
+    return torch.as_tensor(idx, dtype=torch.int64), torch.as_tensor(grad, dtype=torch.float32)
 
 
 def carry(gaussian_means0: torch.Tensor, positions: torch.Tensor, positions0: torch.Tensor, index: torch.Tensor,
