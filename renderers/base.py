@@ -53,6 +53,9 @@ class Gaussians:
         opacity_logits: (N,) float32, opacity = sigmoid(logit).
         colors: (N, 3) float32 linear RGB in [0, 1]; ignored when ``sh`` is given.
         sh: optional (N, K, 3) float32 spherical-harmonic coefficients, K in {1, 4, 9, 16}.
+        deformation: optional (N, 3, 3) float32 linear maps ``A`` applied to each Gaussian's shape:
+            its covariance becomes ``A R S S^T R^T A^T`` (the material's local deformation since
+            the frame the shape was fitted at); ``None`` is the identity.
     """
 
     means: torch.Tensor
@@ -61,6 +64,7 @@ class Gaussians:
     opacity_logits: torch.Tensor
     colors: Optional[torch.Tensor] = None
     sh: Optional[torch.Tensor] = None
+    deformation: Optional[torch.Tensor] = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -98,6 +102,8 @@ class Gaussians:
             t = getattr(self, name)
             if tuple(t.shape) != shape:
                 raise ValueError(f"Gaussians.{name} must have shape {shape} (N={n}), got {tuple(t.shape)}")
+        if self.deformation is not None and tuple(self.deformation.shape) != (n, 3, 3):
+            raise ValueError(f"Gaussians.deformation must have shape ({n}, 3, 3) (N={n}), got {tuple(self.deformation.shape)}")
         if self.sh is not None:
             if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or self.sh.shape[1] not in (1, 4, 9, 16):
                 raise ValueError(

@@ -63,6 +63,8 @@ class GsplatRenderer(Renderer):
         from gsplat import rasterization
 
         validate_render_inputs(gaussians, cameras)
+        if gaussians.deformation is not None:
+            raise ValueError("the gsplat renderer does not take Gaussians.deformation yet; use the 'warp' or 'torch' renderer")
         device = gaussians.means.device
         if device.type != "cuda":
             raise ValueError(f"the gsplat renderer needs Gaussians on a CUDA device, got {device}")

@@ -110,7 +110,7 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     return R.reshape(q.shape[:-1] + (3, 3))
 
 
-def covariance_3d(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
+def covariance_3d(log_scales: torch.Tensor, quats: torch.Tensor, deformation: Optional[torch.Tensor] = None) -> torch.Tensor:
     """World-space covariances ``Sigma = R S S^T R^T``.
 
     Args:
@@ -121,6 +121,8 @@ def covariance_3d(log_scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor
         (..., 3, 3) symmetric covariances in m^2.
     """
     M = quat_to_rotmat(quats) * torch.exp(log_scales)[..., None, :]
+    if deformation is not None:  # (..., 3, 3): Sigma = A R S S^T R^T A^T
+        M = deformation @ M
     return M @ M.transpose(-1, -2)
 
 
@@ -268,7 +270,7 @@ def project_gaussians(gaussians: Gaussians, cameras: Cameras) -> ProjectedGaussi
         ],
         -2,
     )  # (B, N, 2, 3)
-    cov3d = covariance_3d(gaussians.log_scales, gaussians.quats)  # (N, 3, 3)
+    cov3d = covariance_3d(gaussians.log_scales, gaussians.quats, gaussians.deformation)  # (N, 3, 3)
     cov_cam = torch.einsum("bij,njk,blk->bnil", Rc, cov3d, Rc)  # (B, N, 3, 3)
     cov2d = J @ cov_cam @ J.transpose(-1, -2)
     cov2d = cov2d + LOW_PASS * torch.eye(2, dtype=dtype, device=device)
@@ -428,7 +430,7 @@ def validate_render_inputs(gaussians: Gaussians, cameras: Cameras) -> None:
     gaussians.validate()
     cameras.validate()
     dtype = gaussians.means.dtype
-    for name in ("log_scales", "quats", "opacity_logits", "colors", "sh"):
+    for name in ("log_scales", "quats", "opacity_logits", "colors", "sh", "deformation"):
         t = getattr(gaussians, name)
         if t is not None and t.dtype != dtype:
             raise ValueError(f"Gaussians.{name} has dtype {t.dtype} but means have {dtype}; use one dtype")

@@ -172,6 +172,7 @@ def _project(
     means: wp.array[wp.vec3],
     log_scales: wp.array[wp.vec3],
     quats: wp.array[wp.vec4],
+    deform: wp.array[wp.mat33],
     opacity_logits: wp.array[float],
     w2c: wp.array[wp.mat44],
     intr: wp.array[wp.vec4],
@@ -208,7 +209,7 @@ def _project(
     R = _quat_to_rotmat(quats[g])
     s = log_scales[g]
     S = wp.mat33(wp.exp(s[0]), 0.0, 0.0, 0.0, wp.exp(s[1]), 0.0, 0.0, 0.0, wp.exp(s[2]))
-    L = R * S
+    L = deform[g] * R * S
 
     # the reference's (gsplat's) clamp: the frustum through the image edges widened by 30% of the
     # half field of view on each side; only the Jacobian sees the clamped values
@@ -663,6 +664,7 @@ class _RasterizeFunction(torch.autograd.Function):
         means: torch.Tensor,
         log_scales: torch.Tensor,
         quats: torch.Tensor,
+        deformation: torch.Tensor,
         opacity_logits: torch.Tensor,
         colors: torch.Tensor,
         w2c: torch.Tensor,
@@ -686,6 +688,7 @@ class _RasterizeFunction(torch.autograd.Function):
             _wa(means, wp.vec3),
             _wa(log_scales, wp.vec3),
             _wa(quats, wp.vec4),
+            _wa(deformation, wp.mat33),
             _wa(opacity_logits),
             _wa(w2c, wp.mat44),
             _wa(intr, wp.vec4),
@@ -722,7 +725,7 @@ class _RasterizeFunction(torch.autograd.Function):
                 block_dim=BATCH,
             )
         ctx.save_for_backward(
-            means, log_scales, quats, opacity_logits, colors, w2c, intr,
+            means, log_scales, quats, deformation, opacity_logits, colors, w2c, intr,
             xy_depth, conic_opacity, binning.sorted_ids, binning.ranges, final_T, count,
         )  # fmt: skip
         ctx.settings = settings
@@ -730,7 +733,7 @@ class _RasterizeFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb: Optional[torch.Tensor], g_alpha: Optional[torch.Tensor], g_depth: Optional[torch.Tensor]):
-        (means, log_scales, quats, opacity_logits, colors, w2c, intr,
+        (means, log_scales, quats, deformation, opacity_logits, colors, w2c, intr,
          xy_depth, conic_opacity, sorted_ids, ranges, final_T, count) = ctx.saved_tensors  # fmt: skip
         width, height, near, background = ctx.settings
         device = means.device
@@ -753,6 +756,7 @@ class _RasterizeFunction(torch.autograd.Function):
         g_means = torch.zeros_like(means)
         g_log_scales = torch.zeros_like(log_scales)
         g_quats = torch.zeros_like(quats)
+        g_deformation = torch.zeros_like(deformation)
         g_logits = torch.zeros_like(opacity_logits)
         w_xy_depth = _wa(xy_depth, wp.vec4)
         w_conic_opacity = _wa(conic_opacity, wp.vec4)
@@ -782,8 +786,8 @@ class _RasterizeFunction(torch.autograd.Function):
                 outputs=[wg_xy_depth, wg_conic_opacity, _wa(g_colors.view(B * N, 3), wp.vec3)],
                 block_dim=BATCH,
             )
-            if not any(ctx.needs_input_grad[:4]):
-                return None, None, None, None, g_colors, None, None, None
+            if not any(ctx.needs_input_grad[:5]):
+                return None, None, None, None, None, g_colors, None, None, None
             wp.launch(
                 _project,
                 dim=B * N,
@@ -791,6 +795,7 @@ class _RasterizeFunction(torch.autograd.Function):
                     _wa(means, wp.vec3),
                     _wa(log_scales, wp.vec3),
                     _wa(quats, wp.vec4),
+                    _wa(deformation, wp.mat33),
                     _wa(opacity_logits),
                     _wa(w2c, wp.mat44),
                     _wa(intr, wp.vec4),
@@ -804,6 +809,7 @@ class _RasterizeFunction(torch.autograd.Function):
                     _wa(g_means, wp.vec3),
                     _wa(g_log_scales, wp.vec3),
                     _wa(g_quats, wp.vec4),
+                    _wa(g_deformation, wp.mat33),
                     _wa(g_logits),
                     None,
                     None,
@@ -815,7 +821,14 @@ class _RasterizeFunction(torch.autograd.Function):
                 adj_outputs=[wg_xy_depth, wg_conic_opacity],
                 adjoint=True,
             )
-        return g_means, g_log_scales, g_quats, g_logits, g_colors, None, None, None
+        return g_means, g_log_scales, g_quats, g_deformation, g_logits, g_colors, None, None, None
+
+
+def _deformation(gaussians: Gaussians) -> torch.Tensor:
+    """(N, 3, 3) per-Gaussian deformation, the identity when the Gaussians have none."""
+    if gaussians.deformation is not None:
+        return gaussians.deformation
+    return torch.eye(3, dtype=gaussians.means.dtype, device=gaussians.means.device).expand(len(gaussians), 3, 3)
 
 
 @register_renderer("warp")
@@ -875,6 +888,7 @@ class WarpTileRenderer(Renderer):
             gaussians.means.to(f32).contiguous(),
             gaussians.log_scales.to(f32).contiguous(),
             gaussians.quats.to(f32).contiguous(),
+            _deformation(gaussians).to(f32).contiguous(),
             gaussians.opacity_logits.to(f32).contiguous(),
             colors,
             w2c,

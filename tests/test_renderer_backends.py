@@ -30,7 +30,7 @@ from renderers.base import ALPHA_MAX, ALPHA_MIN, T_MIN, Gaussians
 from renderers.torch_reference import project_gaussians
 from toolkit.cameras import Cameras
 
-ATTRS = ("means", "log_scales", "quats", "opacity_logits", "colors", "sh")
+ATTRS = ("means", "log_scales", "quats", "opacity_logits", "colors", "sh", "deformation")
 CUDA_ONLY = {"gsplat"}  # backends that only exist for CUDA tensors
 BAND = 1e-3  # relative distance to the 1/255 or 1e-4 threshold below which a pixel is not compared
 CLAMP_BAND = 1e-4  # the same for the 0.99 clamp (a kink, not a jump: only gradients see it)
@@ -408,3 +408,31 @@ def test_bad_inputs_raise_clear_errors(name, device):
         r(good, cams[torch.zeros(0, dtype=torch.long)])
     with pytest.raises(TypeError):
         r(good, "not cameras")
+
+
+@pytest.mark.parametrize("name", [b for b in BACKENDS if b not in CUDA_ONLY])
+def test_deformed_gaussians_match_reference(name, device):
+    """Per-Gaussian deformations A (covariance A R S S^T R^T A^T): images and every gradient,
+    the deformations' included, match the float64 reference."""
+    _skip_unsupported(name, device)
+    gs = _random_gaussians(200, 5, device)
+    gen = torch.Generator().manual_seed(7)
+    A = torch.eye(3) + 0.3 * torch.randn(200, 3, 3, generator=gen)
+    _compare(name, gs.replace(deformation=A.to(device)), _ring_cameras(40, 32, 3, device), device, seed=5)
+
+
+def test_deformation_is_the_covariance_map():
+    """The reference's covariance with a deformation is A Sigma A^T; the identity changes nothing."""
+    from renderers.torch_reference import covariance_3d
+
+    gs = _float64(_random_gaussians(50, 3))
+    A = torch.eye(3, dtype=torch.float64) + 0.4 * torch.randn(50, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    sigma = covariance_3d(gs.log_scales, gs.quats)
+    torch.testing.assert_close(covariance_3d(gs.log_scales, gs.quats, A), A @ sigma @ A.transpose(1, 2))
+    torch.testing.assert_close(covariance_3d(gs.log_scales, gs.quats, torch.eye(3, dtype=torch.float64).expand(50, 3, 3)), sigma)
+
+
+def test_deformation_shape_is_checked():
+    gs = _random_gaussians(10, 0)
+    with pytest.raises(ValueError, match="Gaussians.deformation must have shape"):
+        gs.replace(deformation=torch.zeros(10, 3)).validate()
