@@ -33,6 +33,7 @@ bounded in the backward pass too (it recomputes the chunk).
 from __future__ import annotations
 
 import math
+from typing import Optional
 from dataclasses import dataclass
 
 import torch
