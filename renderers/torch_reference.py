@@ -33,8 +33,8 @@ bounded in the backward pass too (it recomputes the chunk).
 from __future__ import annotations
 
 import math
-from typing import Optional
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch.utils.checkpoint import checkpoint
