@@ -78,29 +78,18 @@ def main(argv=None) -> int:
 
 
 def _deform_covariances(module, x0) -> None:
-    """Wrap ``module.gaussians_at`` so every Gaussian's covariance becomes ``A R S S R^T A^T``."""
+    """Wrap ``module.gaussians_at`` so every Gaussian carries its neighbourhood's deformation
+    gradient since frame 0 (``Gaussians.deformation``: covariance ``A R S S^T R^T A^T``)."""
     import torch
-    from scipy.spatial.transform import Rotation
 
     from toolkit.physics.embedding import local_deformation
 
     idx, grad = local_deformation((module.gaussian_means0 + module.gaussian_offset).detach(), x0)
-    q = module.quats.detach().double()
-    R = torch.as_tensor(Rotation.from_quat(torch.cat([q[:, 1:], q[:, :1]], 1).numpy()).as_matrix())
-    RS = R * torch.exp(module.log_scales.detach().double())[:, None, :]
     original = module.gaussians_at
 
     def gaussians_at(positions, x0_, appearance_grad=True):
-        out = []
-        for p, g in zip(positions, original(positions, x0_, appearance_grad)):
-            A = torch.einsum("gki,gkj->gij", p.detach().double()[idx], grad.double())
-            M = A @ RS
-            lam, U = torch.linalg.eigh(M @ M.transpose(1, 2))
-            U[torch.linalg.det(U) < 0, :, 0] *= -1
-            xyzw = torch.as_tensor(Rotation.from_matrix(U.numpy()).as_quat())
-            quats = torch.cat([xyzw[:, 3:], xyzw[:, :3]], 1).float()
-            out.append(g.replace(log_scales=(0.5 * torch.log(lam.clamp_min(1e-14))).float(), quats=quats))
-        return out
+        return [g.replace(deformation=torch.einsum("gki,gkj->gij", p.detach()[idx], grad))
+                for p, g in zip(positions, original(positions, x0_, appearance_grad))]
 
     module.gaussians_at = gaussians_at
 

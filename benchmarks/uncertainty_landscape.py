@@ -68,6 +68,8 @@ def main(argv=None) -> int:
     every = list(range(1, module.input.n_train))
     scored = [f for f in (2, 4, 6) if f < module.input.n_train]
     base = module.material_params().detach().clone()
+    if args.param not in module.material.param_names:
+        raise SystemExit(f"--param {args.param!r} is not a parameter of {args.material}: {', '.join(module.material.param_names)}")
     i_e = module.material.param_names.index(args.param)
     x0 = (module.particles0 + module.particle_offset).detach()
     print(json.dumps({"scene": plan["name"], "truth": truth, "throw": plan["throw"],

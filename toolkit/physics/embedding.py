@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from toolkit.mls import mls_neighbourhoods
+
 __all__ = ["embed", "carry", "local_deformation", "EMBEDDING_MODES", "AFFINE_MIN_NEIGHBOURS"]
 
 #: values of :func:`embed`'s ``mode``
@@ -67,37 +69,22 @@ def embed(gaussian_means: torch.Tensor, particles: torch.Tensor, k: int = 8, eps
     k = min(k, n)
     P = particles.detach().cpu().numpy().astype(np.float64)
     V = gaussian_means.detach().cpu().numpy().astype(np.float64)
-    dist, idx = cKDTree(P).query(V, k=k)
-    dist = np.asarray(dist).reshape(len(V), k)
-    idx = np.asarray(idx).reshape(len(V), k)
-    if mode == "idw" or n < 4:
+    if mode == "affine" and n >= 4:
+        idx, w = _affine_weights(P, V, k, ridge)
+    else:
+        dist, idx = cKDTree(P).query(V, k=k)
+        dist = np.asarray(dist).reshape(len(V), k)
+        idx = np.asarray(idx).reshape(len(V), k)
         w = 1.0 / (dist + eps)
         w = w / w.sum(1, keepdims=True)
-    else:
-        w = _affine_weights(P, V, idx, dist, ridge)
     return torch.as_tensor(idx, dtype=torch.int64), torch.as_tensor(w, dtype=torch.float32)
 
 
-def _affine_fit(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndarray, ridge: float) -> np.ndarray:
-    """Rows of the weighted least-squares affine fit around each ``v``: ``(G, k, 4)`` coefficients
-    ``Q_vj = w_j M^-1 [p_j - v, 1]`` with ``M = sum_j w_j [p_j - v, 1][p_j - v, 1]^T`` and
-    ``w_j = (1 - d_j^2 / R^2)^3`` (R just beyond the k-th neighbour). For neighbour positions
-    ``y_j``, the fitted affine map is ``y(x) = sum_j y_j (Q_vj[:3] . (x - v) + Q_vj[3])``."""
-    k = idx.shape[1]
-    R = 1.05 * dist[:, -1:] + 1e-12
-    w = (1.0 - (dist / R) ** 2) ** 3 + 1e-9
-    X = np.concatenate([P[idx] - V[:, None, :], np.ones((len(V), k, 1))], axis=2)  # (G, k, 4)
-    M = np.einsum("gk,gki,gkj->gij", w, X, X)
-    reg = ridge * (R[:, 0] ** 2) * w.sum(axis=1)
-    for d in range(3):
-        M[:, d, d] += reg
-    return w[..., None] * np.linalg.solve(M[:, None], X[..., None])[..., 0]
-
-
-def _affine_weights(P: np.ndarray, V: np.ndarray, idx: np.ndarray, dist: np.ndarray, ridge: float) -> np.ndarray:
-    """The affine fit's value at ``v`` as weights of the neighbours' positions, ``(G, k)``."""
-    c = _affine_fit(P, V, idx, dist, ridge)[..., 3]
-    return c / c.sum(axis=1, keepdims=True)
+def _affine_weights(P: np.ndarray, V: np.ndarray, k: int, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbour indices (G, k) and the affine fit's value at each ``v`` as weights of their positions."""
+    fit = mls_neighbourhoods(P, V, k, ridge)
+    c = fit.value_coefficients()
+    return fit.indices, c / c.sum(axis=1, keepdims=True)
 
 
 def local_deformation(gaussian_means: torch.Tensor, particles0: torch.Tensor, k: int = AFFINE_MIN_NEIGHBOURS,
@@ -121,13 +108,8 @@ def local_deformation(gaussian_means: torch.Tensor, particles0: torch.Tensor, k:
     if n < 4:
         raise ValueError(f"a local deformation needs at least 4 particles, got {n}")
     k = min(max(k, 4), n)
-    P = particles0.detach().cpu().numpy().astype(np.float64)
-    V = gaussian_means.detach().cpu().numpy().astype(np.float64)
-    dist, idx = cKDTree(P).query(V, k=k)
-    dist = np.asarray(dist).reshape(len(V), k)
-    idx = np.asarray(idx).reshape(len(V), k)
-    grad = _affine_fit(P, V, idx, dist, ridge)[..., :3]
-    return torch.as_tensor(idx, dtype=torch.int64), torch.as_tensor(grad, dtype=torch.float32)
+    fit = mls_neighbourhoods(particles0.detach().cpu().numpy(), gaussian_means.detach().cpu().numpy(), k, ridge)
+    return torch.as_tensor(fit.indices, dtype=torch.int64), torch.as_tensor(fit.gradient_coefficients(), dtype=torch.float32)
 
 
 def carry(gaussian_means0: torch.Tensor, positions: torch.Tensor, positions0: torch.Tensor, index: torch.Tensor,

@@ -20,7 +20,8 @@ uniform motion), so at an impact surface vertices fall behind, detach and freeze
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from toolkit.mls import mls_neighbourhoods
 
 __all__ = ["SurfaceEmbedding"]
 
@@ -47,20 +48,9 @@ class SurfaceEmbedding:
         if V.ndim != 2 or V.shape[1] != 3:
             raise ValueError(f"rest_vertices must have shape (V, 3), got {V.shape}")
         k = int(min(max(k, 4), len(P)))
-        dist, idx = cKDTree(P).query(V, k=k)
-        dist = dist.reshape(len(V), k)
-        idx = idx.reshape(len(V), k)
-        R = 1.05 * dist[:, -1:] + 1e-12
-        w = (1.0 - (dist / R) ** 2) ** 3 + 1e-9  # (V, k)
-        X = np.concatenate([P[idx] - V[:, None, :], np.ones((len(V), k, 1))], axis=2)  # (V, k, 4)
-        M = np.einsum("vk,vki,vkj->vij", w, X, X)
-        reg = ridge * (R[:, 0] ** 2) * w.sum(axis=1)
-        M[:, 0, 0] += reg
-        M[:, 1, 1] += reg
-        M[:, 2, 2] += reg
-        q = np.linalg.solve(M, np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (len(V), 4))[..., None])[..., 0]
-        self.indices = idx
-        self.coefficients = w * np.einsum("vki,vi->vk", X, q)  # (V, k), rows sum to 1
+        fit = mls_neighbourhoods(P, V, k, ridge)
+        self.indices = fit.indices
+        self.coefficients = fit.value_coefficients()  # (V, k), rows sum to 1
 
     def __call__(self, particles: np.ndarray) -> np.ndarray:
         """(N, 3) or (T, N, 3) particle positions -> (V, 3) or (T, V, 3) float32 vertex positions."""
