@@ -29,7 +29,7 @@ import torch
 
 from renderers import register_renderer
 from renderers.base import LOW_PASS, Gaussians, Renderer, RenderOutput
-from renderers.torch_reference import sh_degree_from_coeffs, validate_render_inputs
+from renderers.torch_reference import covariance_3d, sh_degree_from_coeffs, validate_render_inputs
 from toolkit.cameras import Cameras
 
 __all__ = ["gsplat_available", "GsplatRenderer"]
@@ -63,8 +63,6 @@ class GsplatRenderer(Renderer):
         from gsplat import rasterization
 
         validate_render_inputs(gaussians, cameras)
-        if gaussians.deformation is not None:
-            raise ValueError("the gsplat renderer does not take Gaussians.deformation yet; use the 'warp' or 'torch' renderer")
         device = gaussians.means.device
         if device.type != "cuda":
             raise ValueError(f"the gsplat renderer needs Gaussians on a CUDA device, got {device}")
@@ -83,6 +81,9 @@ class GsplatRenderer(Renderer):
         else:
             colors = gaussians.colors.to(f32).contiguous()
             sh_degree = None
+        # deformed Gaussians go in as covariances A R S S^T R^T A^T (gsplat then ignores quats and scales)
+        covars = None if gaussians.deformation is None else covariance_3d(
+            gaussians.log_scales.to(f32), gaussians.quats.to(f32), gaussians.deformation.to(f32)).contiguous()
         render, alphas, _ = rasterization(
             means=gaussians.means.to(f32).contiguous(),
             quats=gaussians.quats.to(f32).contiguous(),
@@ -102,6 +103,7 @@ class GsplatRenderer(Renderer):
             backgrounds=background.expand(B, 3).contiguous(),
             render_mode="RGB+D",
             rasterize_mode="classic",
+            covars=covars,
         )
         return RenderOutput(rgb=render[..., :3], alpha=alphas[..., 0], depth=render[..., 3])
 

@@ -48,6 +48,8 @@ __all__ = [
     "ProjectedGaussians",
     "quat_to_rotmat",
     "covariance_3d",
+    "rotmat_to_quat",
+    "bake_deformation",
     "project_gaussians",
     "eval_sh",
     "sh_degree_from_coeffs",
@@ -125,6 +127,50 @@ def covariance_3d(log_scales: torch.Tensor, quats: torch.Tensor, deformation: Op
     if deformation is not None:  # (..., 3, 3): Sigma = A R S S^T R^T A^T
         M = deformation @ M
     return M @ M.transpose(-1, -2)
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """(..., 4) unit quaternions (w, x, y, z) with ``w >= 0`` of rotation matrices (..., 3, 3)
+    (Shepperd's method: the largest of the four squared components is taken from the trace)."""
+    m = R.reshape(-1, 3, 3)
+    t = torch.stack([1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                     1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1)
+    k = t.argmax(-1)
+    s = 2 * torch.sqrt(t.gather(1, k[:, None]).clamp_min(1e-12))[:, 0]
+    q = torch.empty(len(m), 4, dtype=R.dtype, device=R.device)
+    rows = [  # (w, x, y, z) * s for the four choices of the largest component
+        torch.stack([s * s / 4, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+        torch.stack([m[:, 2, 1] - m[:, 1, 2], s * s / 4, m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
+        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], s * s / 4, m[:, 1, 2] + m[:, 2, 1]], -1),
+        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], s * s / 4], -1),
+    ]
+    for i, row in enumerate(rows):
+        sel = k == i
+        q[sel] = row[sel] / s[sel, None]
+    q = q / q.norm(dim=-1, keepdim=True)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def bake_deformation(gaussians: Gaussians) -> Gaussians:
+    """The same Gaussians with each ``deformation`` folded into its scales and rotation.
+
+    ``A R S = U diag(sigma) V^T`` (SVD) gives the covariance ``U diag(sigma)^2 U^T``: rotation
+    ``U`` (a column flipped when ``det U < 0``) and scales ``sigma``. For files and renderers that
+    only take scales and rotations (3DGS PLY). Not meant for gradients (singular vectors are not
+    differentiable where two scales coincide). Gaussians without a deformation come back as they are.
+    """
+    if gaussians.deformation is None:
+        return gaussians
+    with torch.no_grad():
+        M = gaussians.deformation.double() @ (quat_to_rotmat(gaussians.quats.double())
+                                              * torch.exp(gaussians.log_scales.double())[..., None, :])
+        U, sigma, _ = torch.linalg.svd(M)
+        flip = torch.linalg.det(U) < 0
+        U[flip, :, 2] = -U[flip, :, 2]
+        quats = rotmat_to_quat(U).to(gaussians.quats.dtype)
+        log_scales = torch.log(sigma.clamp_min(1e-30)).to(gaussians.log_scales.dtype)
+    return gaussians.replace(quats=quats, log_scales=log_scales, deformation=None)
 
 
 def sh_degree_from_coeffs(num_coeffs: int) -> int:

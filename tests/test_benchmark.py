@@ -133,6 +133,24 @@ def test_substeps_keep_the_configs_courant_number_on_the_final_grid():
     assert sim("small", {"sim": {"dx": 0.02, "substeps": 7}})["substeps"] == 7
 
 
+def test_model_options_override_merges_into_the_configs():
+    """--model-options reaches every job merged key by key over its config's module options (the
+    non-Newtonian config's own keep theirs), and a bad value is refused with the field's name."""
+    from toolkit.benchmark import BenchmarkSpec, SceneEntry
+    from toolkit.benchmark.plan import _load_config, config_for, scene_settings
+    from toolkit.pipeline import RunSettings
+    from toolkit.run_validation import SettingsError
+
+    for material in ("neo_hookean", "non_newtonian"):
+        scene = SceneEntry("a", "/x", material)
+        base = _load_config(config_for("synthetic", material)).get("model_options") or {}
+        spec = BenchmarkSpec([scene], ["progressive"], size="small", overrides={"model_options": {"gaussian_shape": "deformed"}})
+        got = scene_settings(scene, spec)[0]["model_options"]
+        assert got == {**base, "gaussian_shape": "deformed"}
+    with pytest.raises(SettingsError, match="model_options.gaussian_shape"):
+        RunSettings(scene="/x", model_options={"gaussian_shape": "soft"}).validate()
+
+
 # ------------------------------------------------------------------------------------ tables
 def _rec(scene, strategy, cd, emd, e_err, cams=3, material="neo_hookean"):
     return {"scene": scene, "material": material, "strategy": strategy, "cameras": cams, "curriculum": "X",

@@ -126,3 +126,53 @@ def test_local_deformation_is_the_affine_map_of_the_neighbourhood(seed):
     for positions, expected in ((P, np.eye(3)), (P @ A.T + rng.normal(size=3), A)):
         got = torch.einsum("gki,gkj->gij", torch.tensor(positions, dtype=torch.float32)[idx], grad).numpy()
         np.testing.assert_allclose(got, np.broadcast_to(expected, got.shape), atol=1e-3)  # measured 3e-4 (ridge)
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_carried_deformation_is_relative_to_the_fits_frame_zero(seed):
+    """carry_deformation gives the identity at frame 0 even when frame 0 is itself an affine image
+    of the positions the coefficients were fitted on (a fit's position offsets), and exactly A B^-1
+    when frame 0 is B x and frame t is A x (plus translations far from the origin, in float32)."""
+    from toolkit.physics.embedding import carry_deformation, local_deformation
+
+    rng = np.random.default_rng(seed)
+    P = _box_particles()
+    V = _gaussians(P, rng, n=60)
+    idx, grad = local_deformation(torch.tensor(V), torch.tensor(P))
+    B = np.eye(3) + rng.normal(0.0, 0.05, size=(3, 3))
+    A = np.eye(3) + rng.normal(0.0, 0.3, size=(3, 3))
+    far = np.array([40.0, -25.0, 3.0])  # metres from the origin: the map must not lose the cm scale
+    x0 = torch.tensor(P @ B.T + far, dtype=torch.float32)
+    frames = torch.tensor(np.stack([P @ B.T + far, P @ A.T + far + 1.0]), dtype=torch.float32)
+    got = carry_deformation(frames, x0, idx, grad).numpy()
+    assert got.shape == (2, 60, 3, 3)
+    np.testing.assert_allclose(got[0], np.broadcast_to(np.eye(3), got[0].shape), atol=2e-3)
+    np.testing.assert_allclose(got[1], np.broadcast_to(A @ np.linalg.inv(B), got[1].shape), atol=3e-3)
+
+
+def test_deformed_gaussians_in_the_fit_follow_a_stretch_and_carry_gradients(tmp_path):
+    """A module with gaussian_shape='deformed' renders each Gaussian with its neighbourhood's
+    deformation (the identity at the fit's own frame 0, a stretch's A after it), gradients reach
+    the particle positions through the covariances, and a rigid module renders none."""
+    from tests.physics_fixtures import fit_sim, tiny_scene
+    from toolkit.physics import InversePhysicsModule
+    from toolkit.physics.oracle import oracle_input
+
+    inp = oracle_input(tiny_scene(tmp_path / "scene"), particle_spacing=0.02)
+    rigid = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given")
+    deformed = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="deformed")
+    x0 = deformed.particles0.clone()
+    A = torch.tensor([[1.4, 0.0, 0.0], [0.0, 0.7, 0.0], [0.0, 0.0, 1.0]])
+    stretched = (x0 - x0.mean(0)) @ A.T + x0.mean(0)
+    positions = torch.stack([x0, stretched]).requires_grad_(True)
+    g0, g1 = deformed.gaussians_at(positions, x0)
+    assert rigid.gaussians_at(positions.detach(), x0)[1].deformation is None
+    torch.testing.assert_close(g0.deformation, torch.eye(3).expand_as(g0.deformation), atol=2e-3, rtol=0)
+    torch.testing.assert_close(g1.deformation, A.expand_as(g1.deformation), atol=5e-3, rtol=0)
+    cams = deformed.input.cameras[list(deformed.input.train_cameras)]
+    # means detached: whatever reaches the positions comes through the covariances
+    alpha = deformed.renderer(g1.replace(means=g1.means.detach()), cams).alpha.sum()
+    (grad,) = torch.autograd.grad(alpha, positions)
+    assert float(grad[1].abs().sum()) > 0
+    with pytest.raises(ValueError, match="gaussian_shape must be one of"):
+        InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="soft")

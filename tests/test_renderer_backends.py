@@ -410,7 +410,7 @@ def test_bad_inputs_raise_clear_errors(name, device):
         r(good, "not cameras")
 
 
-@pytest.mark.parametrize("name", [b for b in BACKENDS if b not in CUDA_ONLY])
+@pytest.mark.parametrize("name", BACKENDS)
 def test_deformed_gaussians_match_reference(name, device):
     """Per-Gaussian deformations A (covariance A R S S^T R^T A^T): images and every gradient,
     the deformations' included, match the float64 reference."""
@@ -436,3 +436,24 @@ def test_deformation_shape_is_checked():
     gs = _random_gaussians(10, 0)
     with pytest.raises(ValueError, match="Gaussians.deformation must have shape"):
         gs.replace(deformation=torch.zeros(10, 3)).validate()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_baked_deformation_renders_the_same_image(seed):
+    """Folding each deformation into scales and a rotation (for PLY files and viewers) keeps the
+    covariance A R S S^T R^T A^T, so the baked Gaussians render the deformed image."""
+    from renderers.torch_reference import bake_deformation, covariance_3d, rotmat_to_quat, quat_to_rotmat
+
+    gs = _random_gaussians(150, 3, "cpu")
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.eye(3) + 0.4 * torch.randn(150, 3, 3, generator=gen)
+    A[0] = torch.diag(torch.tensor([1.0, 1.0, -1.0]))  # a reflection: the rotation must stay proper
+    baked = bake_deformation(gs.replace(deformation=A))
+    assert baked.deformation is None and bool((baked.quats[:, 0] >= 0).all())
+    torch.testing.assert_close(covariance_3d(baked.log_scales, baked.quats), covariance_3d(gs.log_scales, gs.quats, A),
+                               atol=1e-6, rtol=1e-4)
+    R = quat_to_rotmat(torch.randn(50, 4, generator=gen, dtype=torch.float64))
+    torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(R)), R)
+    r = get_renderer("torch")
+    cams = _ring_cameras(40, 32, 2, "cpu")
+    torch.testing.assert_close(r(baked, cams).rgb, r(gs.replace(deformation=A), cams).rgb, atol=1e-4, rtol=0)

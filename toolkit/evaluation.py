@@ -123,7 +123,9 @@ def evaluate_module(module, out_dir: str | Path, render: bool = True, progress: 
             frames = []
             for t in range(T):
                 bar.describe(f"rendering frame {t + 1}/{T}")
-                frames.append(module.render_frames(traj["means"][t:t + 1], cams).cpu().numpy())
+                deform = traj.get("deformations")
+                frames.append(module.render_frames(traj["means"][t:t + 1], cams,
+                                                   None if deform is None else deform[t:t + 1]).cpu().numpy())
                 bar.advance()
             renders = np.concatenate(frames)  # (T, C, H, W, 3)
             bar.describe("PSNR and SSIM")

@@ -101,6 +101,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--stage0-iterations", type=int, help="GIC's stage-0 schedule scaled to this many iterations")
     size.add_argument("--geometry", choices=["stage0", "oracle"], help="oracle: ground-truth geometry instead of stage 0")
     size.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"substeps": 100}\' (merged)')
+    size.add_argument("--model-options", type=json_arg,
+                      help='JSON module options merged into every job\'s, e.g. \'{"gaussian_shape": "deformed"}\'')
     size.add_argument("--downscale", type=int, help="integer image downscale factor")
     size.add_argument("--n-train", type=int, help="training frames (default: the scene's split)")
     size.add_argument("--seed", type=int)
@@ -186,7 +188,7 @@ def spec_from_args(args: argparse.Namespace):
         raise BenchmarkError(f"--strategy-options for unknown strategies {sorted(options)}; strategies: "
                              f"{[s.label for s in strategies]}")
     overrides = {}
-    for key in ("geometry", "sim", "downscale", "n_train", "seed", "device", "renderer"):
+    for key in ("geometry", "sim", "model_options", "downscale", "n_train", "seed", "device", "renderer"):
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v

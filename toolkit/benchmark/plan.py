@@ -130,7 +130,7 @@ class BenchmarkSpec:
         dataset: config prefix: the scene's material picks ``configs/<dataset>_*.yaml``.
         config: one YAML config for every scene instead (RunSettings fields or the
             ``run:``/``model:`` layout of ``configs/``).
-        overrides: RunSettings fields applied last (``sim`` is merged key by key).
+        overrides: RunSettings fields applied last (``sim`` and ``model_options`` are merged key by key).
         iterations: ``stage1_iterations``, ``stage2_iterations``, ``appearance_iterations``.
         periodic_eval: :class:`~toolkit.physics.periodic_eval.PeriodicEvaluation` arguments, or
             ``None`` to switch it off.
@@ -370,8 +370,8 @@ def config_for(dataset: str, material: str) -> Optional[Path]:
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
-        if k == "sim" and isinstance(v, dict):
-            out["sim"] = {**(out.get("sim") or {}), **v}
+        if k in ("sim", "model_options") and isinstance(v, dict):
+            out[k] = {**(out.get(k) or {}), **v}
         else:
             out[k] = copy.deepcopy(v)
     return out

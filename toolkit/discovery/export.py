@@ -70,6 +70,7 @@ def module_with_effect(refit: Refit):
         lambda_image=m.lambda_image, lambda_geometry=m.lambda_geometry, ssim_weight=m.ssim_weight,
         learning_rates=hp.get("learning_rates"), warmup_fraction=m.warmup_fraction, seed=m.seed,
         embedding_neighbours=hp.get("embedding_neighbours", 8), embedding=hp.get("embedding", "idw"),
+        gaussian_shape=hp.get("gaussian_shape", "rigid"),
     )
     shift = torch.tensor(phys["shift"], dtype=torch.float32)
     with torch.no_grad():

@@ -62,7 +62,7 @@ def evaluate_state(lib: LibraryModel, q: np.ndarray, clouds: Optional[Sequence[n
     else:
         out.update(cd_future=None, cd_train=None, cd_per_frame=None, emd_future=None, emd_per_frame=None)
     cams = list(range(len(inp.cameras)))
-    renders = lib.render(q, pred["means"], cams).clamp(0, 1).cpu().numpy()  # (T, C, H, W, 3)
+    renders = lib.render(q, pred["means"], cams, pred.get("deformations")).clamp(0, 1).cpu().numpy()  # (T, C, H, W, 3)
     preds = np.transpose(renders, (1, 0, 2, 3, 4))
     gts = inp.images.numpy().astype(np.float32) / 255.0
     masks = inp.masks.numpy().astype(np.float32) / 255.0

@@ -44,7 +44,7 @@ from toolkit.metrics.geometry import chamfer_loss
 from toolkit.metrics.image import ssim_torch
 from toolkit.mpm import MPMSimulator
 from toolkit.mpm.effects import get_effect
-from toolkit.physics.embedding import carry
+from toolkit.physics.embedding import carry, carry_deformation
 
 __all__ = ["LibraryModel", "ParamInfo", "STIFFNESS_PARAMS"]
 
@@ -377,16 +377,26 @@ class LibraryModel:
             return None
         return s.float().to(self.device)
 
-    def render(self, q, means: torch.Tensor, cams: Sequence[int]) -> torch.Tensor:
-        """(F, C, H, W, 3) renders of the Gaussians at ``means`` (F, G, 3) for ``cams``."""
+    def deformations(self, x0: torch.Tensor, positions: torch.Tensor) -> Optional[torch.Tensor]:
+        """(F, G, 3, 3) the Gaussians' deformations at ``positions`` (F, N, 3) simulated from
+        ``x0``, or None when the module's Gaussians keep their shapes (``gaussian_shape``)."""
+        m = self.module
+        if not m.deform_index.numel():
+            return None
+        return carry_deformation(positions, x0, m.deform_index, m.deform_gradient)
+
+    def render(self, q, means: torch.Tensor, cams: Sequence[int], deformations: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(F, C, H, W, 3) renders of the Gaussians at ``means`` (F, G, 3), shaped by
+        ``deformations`` (F, G, 3, 3) when given, for ``cams``."""
         qt = self._t(q)
         m = self.module
         shifts = [self._camera_shift(qt, c) for c in cams]
         out = []
-        for mf in means:
+        for k, mf in enumerate(means):
             g = Gaussians(means=mf, log_scales=m.log_scales.detach(), quats=m.quats.detach(),
                           opacity_logits=m.opacity_logits.detach(),
-                          colors=None if m.colors is None else m.colors.detach(), sh=None if m.sh is None else m.sh.detach())
+                          colors=None if m.colors is None else m.colors.detach(), sh=None if m.sh is None else m.sh.detach(),
+                          deformation=None if deformations is None else deformations[k])
             if all(s is None for s in shifts):
                 out.append(m.renderer(g, self.input.cameras[list(cams)].to(self.device)).rgb)
             else:
@@ -446,9 +456,9 @@ class LibraryModel:
         frames = self.train_frames() if frames is None else list(frames)
         cams = list(self.input.train_cameras) if cams is None else list(cams)
         x0, pos = self.trajectory(q, frames, grad=grad)
-        means = self.gaussian_means(q, x0, pos)
+        means, deform = self.gaussian_means(q, x0, pos), self.deformations(x0, pos)
         with torch.set_grad_enabled(grad):
-            img = self.render(q, means, cams)
+            img = self.render(q, means, cams, deform)
             obs = self.observed_images(frames, cams)
             F = len(frames)
             lam_img = self.module.lambda_image
@@ -478,9 +488,9 @@ class LibraryModel:
         """(F, C) the fit's image loss per frame and camera, ``(1 - w) L1 + w (1 - SSIM)`` on the
         masked image (without ``lambda_image``)."""
         x0, pos = self.trajectory(q, frames, grad=grad)
-        means = self.gaussian_means(q, x0, pos)
+        means, deform = self.gaussian_means(q, x0, pos), self.deformations(x0, pos)
         with torch.set_grad_enabled(grad):
-            img = self.render(q, means, cams)
+            img = self.render(q, means, cams, deform)
             obs = self.observed_images(frames, cams)
             out = self._image_loss(img, obs)
         return out if grad else out.detach().cpu()
@@ -500,9 +510,9 @@ class LibraryModel:
         frames = self.train_frames()
         cams = list(self.input.train_cameras)
         x0, pos = self.trajectory(q, frames, grad=grad)
-        means = self.gaussian_means(q, x0, pos)
+        means, deform = self.gaussian_means(q, x0, pos), self.deformations(x0, pos)
         with torch.set_grad_enabled(grad):
-            img = self.render(q, means, cams)
+            img = self.render(q, means, cams, deform)
             obs = self.observed_images(frames, cams)
             F = img.shape[0]
             total = self.module.lambda_image * self._image_loss(img, obs).sum() / F
@@ -598,10 +608,15 @@ class LibraryModel:
 
     @torch.no_grad()
     def predict(self, q, n_frames: Optional[int] = None) -> dict[str, torch.Tensor]:
-        """``positions`` (T, N, 3) and ``means`` (T, G, 3) at every observed frame."""
+        """``positions`` (T, N, 3) and ``means`` (T, G, 3) at every observed frame (and
+        ``deformations`` (T, G, 3, 3) when the module's Gaussians deform)."""
         T = n_frames or self.input.n_frames
         x0, pos = self.trajectory(q, list(range(T)))
-        return {"positions": pos, "means": self.gaussian_means(q, x0, pos)}
+        out = {"positions": pos, "means": self.gaussian_means(q, x0, pos)}
+        deform = self.deformations(x0, pos)
+        if deform is not None:
+            out["deformations"] = deform
+        return out
 
 
 def _hermite(pos: torch.Tensor, vel: torch.Tensor, t: torch.Tensor, frame_dt: float) -> torch.Tensor:

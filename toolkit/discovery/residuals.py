@@ -220,13 +220,14 @@ def _camera_residuals(lib: LibraryModel, q: np.ndarray, frames: list[int], loc: 
     loc.cameras, loc.train_cameras = cams, list(inp.train_cameras)
     loc.image = lib.image_losses(q, frames, cams).numpy().T  # (C, F)
     x0, pos = lib.trajectory(q, frames)
-    means = lib.gaussian_means(q, x0, pos)
+    means, deform = lib.gaussian_means(q, x0, pos), lib.deformations(x0, pos)
     m = lib.module
     masks = m.masks[:, frames].float().cpu().numpy() / 255.0 > 0.5  # (C, F, H, W)
     iou = np.zeros((len(cams), len(frames)))
     for k, mf in enumerate(means):
         g = Gaussians(means=mf, log_scales=m.log_scales.detach(), quats=m.quats.detach(), opacity_logits=m.opacity_logits.detach(),
-                      colors=None if m.colors is None else m.colors.detach(), sh=None if m.sh is None else m.sh.detach())
+                      colors=None if m.colors is None else m.colors.detach(), sh=None if m.sh is None else m.sh.detach(),
+                      deformation=None if deform is None else deform[k])
         alpha = m.renderer(g, inp.cameras.to(lib.device)).alpha.cpu().numpy() > 0.5  # (C, H, W)
         inter = (alpha & masks[:, k]).sum((1, 2))
         union = (alpha | masks[:, k]).sum((1, 2))

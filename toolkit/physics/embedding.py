@@ -20,6 +20,10 @@ Two choices of coefficients (:func:`embed`, ``mode``):
   :func:`carry`). Measured on a Newtonian scene of issue #20's benchmark (CPU, oracle and stage-0
   geometry), it did not change the fit: log10 mu ended 1.94 and 1.44 decades low with it, 1.88
   and 1.43 without. It is not the default for that reason.
+
+A Gaussian's *shape* can follow the material too (:func:`local_deformation`,
+:func:`carry_deformation`): its covariance becomes ``A Sigma A^T`` with ``A`` the least-squares
+deformation gradient of its neighbourhood since frame 0 (``gaussian_shape="deformed"`` in the fit).
 """
 
 from __future__ import annotations
@@ -30,10 +34,13 @@ from scipy.spatial import cKDTree
 
 from toolkit.mls import mls_neighbourhoods
 
-__all__ = ["embed", "carry", "local_deformation", "EMBEDDING_MODES", "AFFINE_MIN_NEIGHBOURS"]
+__all__ = ["embed", "carry", "local_deformation", "carry_deformation", "EMBEDDING_MODES", "GAUSSIAN_SHAPES",
+           "AFFINE_MIN_NEIGHBOURS"]
 
 #: values of :func:`embed`'s ``mode``
 EMBEDDING_MODES = ("affine", "idw")
+#: how a carried Gaussian's shape changes: ``"rigid"`` (never) or ``"deformed"`` (:func:`carry_deformation`)
+GAUSSIAN_SHAPES = ("rigid", "deformed")
 #: the affine fit reaches at least this many neighbours: past the outer particle layer, so that a
 #: Gaussian outside the body has neighbours in depth and the fit is well-posed in 3D (measured on a
 #: 1 cm lattice: 16 neighbours lose the stretch normal to a flat face 1.5 spacings out, 24 do not)
@@ -127,3 +134,29 @@ def carry(gaussian_means0: torch.Tensor, positions: torch.Tensor, positions0: to
     """
     disp = positions - positions0.unsqueeze(0)  # (F, N, 3)
     return gaussian_means0.unsqueeze(0) + (disp[:, index] * weight[None, :, :, None]).sum(2)
+
+
+def carry_deformation(positions: torch.Tensor, positions0: torch.Tensor, index: torch.Tensor,
+                      gradient: torch.Tensor) -> torch.Tensor:
+    """Each Gaussian's deformation gradient since frame 0 at the frames of ``positions``.
+
+    ``A_g(t) = L_g(p(t)) L_g(p(0))^-1`` with ``L_g(p) = sum_k p[index[g, k]] outer gradient[g, k]``
+    (:func:`local_deformation`): the identity at frame 0 even when ``positions0`` moved away from the
+    positions the coefficients were fitted on (a fit's position offsets), and exactly ``A`` when a
+    neighbourhood moved by ``x -> A x + b``. Differentiable in ``positions`` and ``positions0``.
+
+    Args:
+        positions: (F, N, 3) particle positions at F frames, metres.
+        positions0: (N, 3) particle positions at frame 0, metres.
+        index, gradient: from :func:`local_deformation`, (G, k) and (G, k, 3).
+
+    Returns:
+        (F, G, 3, 3) linear maps, for :attr:`renderers.base.Gaussians.deformation`.
+    """
+    # the coefficients sum to zero over k: positions relative to the first neighbour give the same
+    # maps with less float32 cancellation (metres from the origin against centimetres apart)
+    rel0 = positions0[index] - positions0[index[:, :1]]
+    rel = positions[:, index] - positions[:, index[:, :1]]
+    L0 = torch.einsum("gki,gkj->gij", rel0, gradient)
+    Lt = torch.einsum("fgki,gkj->fgij", rel, gradient)
+    return Lt @ torch.linalg.inv(L0).unsqueeze(0)

@@ -26,25 +26,23 @@ checkpoints): under manual optimization Lightning's ``global_step`` counts optim
 
 from __future__ import annotations
 
-import contextlib
 import logging
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Optional, Union
 
 import pytorch_lightning as pl
 import torch
 from torch import nn
 
 from materials import Material, get_material
-from renderers import RENDERERS, Gaussians, get_renderer
+from renderers import RENDERERS, get_renderer
 from strategies import Strategy, get_strategy
 from strategies.base import GROUPS
-from toolkit.metrics.geometry import chamfer_loss
-from toolkit.data.exclusion import EXCLUSION_META_KEY, apply_keep
-from toolkit.metrics.image import ssim_torch
+from toolkit.data.exclusion import EXCLUSION_META_KEY
 from toolkit.mpm import MPMSimulator, SimConfig
 from toolkit.physics.contact import ground_contact_normal, project_off_ground
-from toolkit.physics.embedding import carry, embed
+from toolkit.physics.embedding import GAUSSIAN_SHAPES, embed, local_deformation
 from toolkit.physics.inputs import PhysicsInput
+from toolkit.physics.objective import FitObjectiveMixin
 from toolkit.physics.prediction import PredictionMixin
 from toolkit.physics.starting_state import StepStream, cosine_with_warmup, initial_v0, surface_particles
 
@@ -65,7 +63,7 @@ DEFAULT_LEARNING_RATES = {
 }
 
 
-class InversePhysicsModule(PredictionMixin, pl.LightningModule):
+class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModule):
     """Fit positions, appearance, initial velocity and material to multi-view video.
 
     Args:
@@ -105,6 +103,11 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         embedding: how Gaussians follow them: ``"idw"`` (inverse-distance average of the
             displacements, default) or ``"affine"`` (exact for any locally affine motion); see
             :mod:`toolkit.physics.embedding`.
+        gaussian_shape: ``"rigid"`` (each Gaussian keeps its stage-0 shape while it moves) or
+            ``"deformed"`` (its covariance follows the material around it, ``A Sigma A^T`` with ``A``
+            the local deformation gradient of its neighbouring particles since frame 0,
+            :func:`~toolkit.physics.embedding.carry_deformation`): a body that spreads or stretches
+            keeps covering what it covers in the images instead of breaking into rigid blobs.
     """
 
     def __init__(
@@ -129,6 +132,7 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         seed: int = 0,
         embedding_neighbours: int = 8,
         embedding: str = "idw",
+        gaussian_shape: str = "rigid",
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -189,6 +193,15 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours, mode=embedding)
         self.register_buffer("embed_index", index)
         self.register_buffer("embed_weight", weight)
+        if gaussian_shape not in GAUSSIAN_SHAPES:
+            raise ValueError(f"gaussian_shape must be one of {GAUSSIAN_SHAPES}, got {gaussian_shape!r}")
+        self.gaussian_shape = gaussian_shape
+        if gaussian_shape == "deformed" and len(self.particles0) >= 4:
+            d_index, d_gradient = local_deformation(self.gaussian_means0, self.particles0)
+        else:
+            d_index, d_gradient = torch.zeros(0, 0, dtype=torch.int64), torch.zeros(0, 0, 3)
+        self.register_buffer("deform_index", d_index)
+        self.register_buffer("deform_gradient", d_gradient)
         # simulated particles compared with the stage-0 surface: those near it at frame 0
         self.register_buffer("surface_index", surface_particles(inp))
         # ---------------------------------------------------------- A: appearance
@@ -296,19 +309,11 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # a run saved with another embedding (neighbour count or mode) keeps its own: the buffers take its shape
-        for name in ("embed_index", "embed_weight"):
+        for name in ("embed_index", "embed_weight", "deform_index", "deform_gradient"):
             saved = state_dict.get(prefix + name)
             if saved is not None and saved.shape != getattr(self, name).shape:
                 setattr(self, name, torch.empty_like(saved, device=getattr(self, name).device))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def gaussians_at(self, positions: torch.Tensor, x0: torch.Tensor, appearance_grad: bool = True) -> list[Gaussians]:
-        """Gaussians for each frame of ``positions`` (F, N, 3) simulated from ``x0``."""
-        means0 = self.gaussian_means0 + self.gaussian_offset
-        means = carry(means0, positions, x0, self.embed_index, self.embed_weight)
-        A = (lambda t: t) if appearance_grad else (lambda t: None if t is None else t.detach())  # noqa: E731
-        return [Gaussians(means=m, log_scales=A(self.log_scales), quats=A(self.quats), opacity_logits=A(self.opacity_logits),
-                          colors=A(self.colors), sh=A(self.sh)) for m in means]
 
     def _sample(self, stage, step: int) -> tuple[list[int], list[int]]:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
@@ -415,87 +420,6 @@ class InversePhysicsModule(PredictionMixin, pl.LightningModule):
         self.curriculum_step += 1
         self._log_step(at, losses)
         return total.detach()
-
-    # ------------------------------------------------------------------ losses
-    def simulate(self, n_frames: int, groups: frozenset = frozenset("XSM")):
-        """Simulate ``n_frames`` frames from the current state; gradients only for ``groups``."""
-        x0 = self.particles0 + (self.particle_offset if "X" in groups else self.particle_offset.detach())
-        v0 = self.v0 if "S" in groups else self.v0.detach()
-        gravity = self.gravity if ("S" in groups and self.optimize_gravity) else self.gravity.detach()
-        params = self.material_params() if "M" in groups else self.material_params().detach()
-        effects = self.effect_params if "M" in groups else self.effect_params.detach()
-        # the simulator re-plans the substeps from these parameters (a stiffer material gets more)
-        out = self.simulator.simulate(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=n_frames)
-        self._note_substeps(out.substeps)
-        return x0, out.positions
-
-    @contextlib.contextmanager
-    def substeps_unlogged(self):
-        """Rollouts inside neither log nor record substep changes (probes around the estimate, such
-        as the uncertainty's perturbed parameters, are not steps of the fit)."""
-        previous, self._log_substeps = getattr(self, "_log_substeps", True), False
-        try:
-            yield
-        finally:
-            self._log_substeps = previous
-
-    def _note_substeps(self, substeps: int) -> None:
-        """Log a line when the substeps per frame change (a re-plan or a dt halving)."""
-        if not getattr(self, "_log_substeps", True):
-            return
-        if substeps != self.substeps:
-            plan = self.simulator.last_plan
-            why = "" if plan is None else (
-                f" ({'dt halving' if substeps > plan.substeps else plan.reason}: wave speed {plan.wave_speed:.3g} m/s, "
-                f"initial speed {plan.max_speed:.3g} m/s, configured {plan.configured})")
-            if self.substeps is None:
-                log.info("simulating with %d substeps per frame%s", substeps, why)
-            else:
-                log.info("substeps per frame %d -> %d at iteration %d%s", self.substeps, substeps, self.curriculum_step, why)
-            self.substeps = int(substeps)
-
-    def losses(self, stage, cams: Sequence[int], frames: Sequence[int]) -> dict[str, torch.Tensor]:
-        """Loss terms of one iteration (differentiable with respect to the stage's groups)."""
-        groups = stage.groups
-        n_sim = max(frames)
-        if groups & {"X", "S", "M"} or self._cached_positions is None or self._cached_positions[1].shape[0] <= n_sim:
-            x0, positions = self.simulate(max(n_sim, 0), groups)
-            if not groups & {"X", "S", "M"}:
-                self._cached_positions = (x0.detach(), positions.detach())
-        else:
-            x0, positions = self._cached_positions
-        out: dict[str, torch.Tensor] = {}
-        zero = torch.zeros((), device=positions.device)
-        total = zero
-        if "image" in stage.losses:
-            gauss = self.gaussians_at(positions[frames], x0, appearance_grad="A" in groups)
-            if "X" not in groups:
-                gauss = [g.replace(means=g.means.detach()) if not (groups & {"S", "M"}) else g for g in gauss]
-            cam_batch = self.input.cameras[cams].to(positions.device)
-            img_loss = zero
-            for f, g in zip(frames, gauss):
-                render = self.renderer(g, cam_batch)
-                gt = self.images[cams, f].float() / 255.0
-                mask = self.masks[cams, f].float().unsqueeze(-1) / 255.0
-                gt = gt * mask
-                keep = self.exclusion_keep[cams].float() / 255.0 if self.exclusion_keep.numel() else None
-                rgb, gt = apply_keep(render.rgb, gt, keep)
-                l1 = (rgb - gt).abs().mean(dim=(1, 2, 3))
-                ssim = ssim_torch(rgb, gt, reduction="none").reshape(len(cams), -1).mean(1)
-                per_cam = (1 - self.ssim_weight) * l1 + self.ssim_weight * (1 - ssim)
-                img_loss = img_loss + self.lambda_image * per_cam.sum()
-            out["image"] = img_loss / len(frames)
-            total = total + out["image"]
-        if "geometry" in stage.losses and self.lambda_geometry > 0:
-            geo = zero
-            for f in frames:
-                target = self.input.surfaces[f].to(positions.device)
-                if len(target):
-                    geo = geo + chamfer_loss(positions[f][self.surface_index], target)
-            out["geometry"] = self.lambda_geometry * geo / len(frames)
-            total = total + out["geometry"]
-        out["total"] = total
-        return out
 
     def _log_step(self, at, losses: dict) -> None:
         est = self.estimate()

@@ -187,7 +187,9 @@ class PeriodicEvaluation(Callback):
                 out.update(geo)
         cam = self._camera(module)
         if cam is not None:
-            renders = module.render_frames(traj["means"][future], [cam])[:, 0].detach().cpu().numpy()  # (F, H, W, 3)
+            deform = traj.get("deformations")
+            renders = module.render_frames(traj["means"][future], [cam], None if deform is None else deform[future])
+            renders = renders[:, 0].detach().cpu().numpy()  # (F, H, W, 3)
             gt = inp.images[cam, future].numpy().astype(np.float32) / 255.0
             mask = inp.masks[cam, future].numpy().astype(np.float32)[..., None] / 255.0
             values = [psnr(r, g * m) for r, g, m in zip(renders, gt, mask)]

@@ -8,7 +8,6 @@ from typing import Optional, Sequence
 import torch
 
 from renderers import Gaussians
-from toolkit.physics.embedding import carry
 
 __all__ = ["PredictionMixin"]
 
@@ -53,20 +52,26 @@ class PredictionMixin:
         """Simulate all frames (training and future) with the current estimate.
 
         Returns:
-            ``positions`` (T, N, 3) particle positions and ``means`` (T, G, 3) Gaussian means, metres.
+            ``positions`` (T, N, 3) particle positions and ``means`` (T, G, 3) Gaussian means, metres;
+            with deformed Gaussian shapes also ``deformations`` (T, G, 3, 3).
         """
         n_frames = n_frames or self.input.n_frames
         x0, positions = self.simulate(n_frames - 1, frozenset())
-        means = carry(self.gaussian_means0 + self.gaussian_offset, positions, x0, self.embed_index, self.embed_weight)
-        return {"positions": positions, "means": means}
+        means, deformations = self.carried(positions, x0)
+        out = {"positions": positions, "means": means}
+        if deformations is not None:
+            out["deformations"] = deformations
+        return out
 
     @torch.no_grad()
-    def render_frames(self, means: torch.Tensor, cameras: Sequence[int]) -> torch.Tensor:
-        """(T, C, H, W, 3) renders of the Gaussians at ``means`` (T, G, 3) for ``cameras``."""
+    def render_frames(self, means: torch.Tensor, cameras: Sequence[int],
+                      deformations: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """(T, C, H, W, 3) renders of the Gaussians at ``means`` (T, G, 3), shaped by
+        ``deformations`` (T, G, 3, 3) when given, for ``cameras``."""
         cams = self.input.cameras[list(cameras)].to(means.device)
         out = []
-        for m in means:
+        for t, m in enumerate(means):
             g = Gaussians(means=m, log_scales=self.log_scales, quats=self.quats, opacity_logits=self.opacity_logits,
-                          colors=self.colors, sh=self.sh)
+                          colors=self.colors, sh=self.sh, deformation=None if deformations is None else deformations[t])
             out.append(self.renderer(g, cams).rgb.clamp(0, 1))
         return torch.stack(out)

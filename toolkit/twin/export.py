@@ -64,6 +64,9 @@ def twin_from_module(module, source: Optional[dict] = None) -> DigitalTwin:
         "camera_K": _np(inp.cameras.K).astype(np.float32),
         "camera_w2c": _np(inp.cameras.w2c).astype(np.float32),
     }
+    if module.deform_index.numel():
+        arrays["deform_index"] = _np(module.deform_index).astype(np.int64)
+        arrays["deform_gradient"] = _np(module.deform_gradient).astype(np.float32)
     if module.sh is not None:
         arrays["gaussian_sh"] = _np(module.sh).astype(np.float32)
     else:
@@ -96,13 +99,18 @@ def twin_from_module(module, source: Optional[dict] = None) -> DigitalTwin:
     return twin
 
 
-def write_sequence(out_dir: str | Path, twin: DigitalTwin, positions: np.ndarray, means: np.ndarray) -> list[Path]:
+def write_sequence(out_dir: str | Path, twin: DigitalTwin, positions: np.ndarray, means: np.ndarray,
+                   deformations: Optional[np.ndarray] = None) -> list[Path]:
     """Per-frame PLY files: ``particles_XXX.ply`` ((N, 3) positions) and ``gaussians_XXX.ply`` (3DGS).
 
     Args:
         positions: (T, N, 3) particle positions, m.
         means: (T, G, 3) Gaussian centres, m (the rest of each Gaussian is the twin's).
+        deformations: (T, G, 3, 3) the Gaussians' deformations when they deform: each frame's file
+            then holds the deformed shapes as plain scales and rotations
+            (:func:`renderers.base.bake_deformation`), which any 3DGS viewer reads.
     """
+    from renderers.torch_reference import bake_deformation
     from toolkit.data.ply import write_ply_points
     from toolkit.scene.export import save_ply
     from toolkit.twin.simulate import twin_gaussians
@@ -111,7 +119,9 @@ def write_sequence(out_dir: str | Path, twin: DigitalTwin, positions: np.ndarray
     written = []
     for t in range(len(positions)):
         written.append(write_ply_points(out / f"particles_{t:03d}.ply", positions[t]))
-        written.append(save_ply(out / f"gaussians_{t:03d}.ply", twin_gaussians(twin, torch.as_tensor(means[t]))))
+        A = None if deformations is None else torch.as_tensor(deformations[t])
+        written.append(save_ply(out / f"gaussians_{t:03d}.ply",
+                                bake_deformation(twin_gaussians(twin, torch.as_tensor(means[t]), deformation=A))))
     return written
 
 
@@ -123,7 +133,7 @@ def export_run(run: str | Path, out: Optional[str | Path] = None, sequence: bool
     """
     from toolkit.pipeline import load_fitted_module
     from toolkit.scene.export import save_ply
-    from toolkit.twin.simulate import simulate_twin, twin_gaussians
+    from toolkit.twin.simulate import simulate_twin, twin_deformations, twin_gaussians
 
     run = Path(run)
     if not run.is_dir():
@@ -143,7 +153,8 @@ def export_run(run: str | Path, out: Optional[str | Path] = None, sequence: bool
         else:
             traj = simulate_twin(twin, device=device)
             positions, means = traj.positions.numpy(), traj.means.numpy()
-        seq = write_sequence(out / "sequence", twin, positions, means)
+        deform = twin_deformations(twin, torch.as_tensor(positions))
+        seq = write_sequence(out / "sequence", twin, positions, means, None if deform is None else deform.numpy())
         files["sequence"] = out / "sequence"
         files["sequence_files"] = len(seq)
     return files

@@ -44,6 +44,9 @@ ARRAYS = {
     "gaussian_sh": ("float32", "(G, K, 3)", "SH coefficients (when present)"),
     "embed_index": ("int64", "(G, k)", "particles each Gaussian follows (toolkit.physics.embedding)"),
     "embed_weight": ("float32", "(G, k)", "their weights, summing to 1 per Gaussian"),
+    "deform_index": ("int64", "(G, k)", "particles whose motion shapes each Gaussian (only when the Gaussians deform)"),
+    "deform_gradient": ("float32", "(G, k, 3)", "their deformation-gradient coefficients "
+                        "(toolkit.physics.embedding.local_deformation; only when the Gaussians deform)"),
     "times": ("float32", "(T,)", "frame times of the fitted video, s"),
     "camera_K": ("float32", "(C, 3, 3)", "intrinsics of the dataset's cameras, px"),
     "camera_w2c": ("float32", "(C, 4, 4)", "world-to-camera extrinsics (OpenCV), m"),
@@ -149,6 +152,15 @@ class DigitalTwin:
                                   f"{a['embed_index'].shape} and {a['embed_weight'].shape}")
         if a["embed_index"].size and (a["embed_index"].min() < 0 or a["embed_index"].max() >= n):
             raise TwinFormatError(f"{where}: embed_index must index the {n} particles")
+        if ("deform_index" in a) != ("deform_gradient" in a):
+            raise TwinFormatError(f"{where}: deform_index and deform_gradient come together (deformed Gaussians) or not at all")
+        if "deform_index" in a:
+            di, dg = a["deform_index"], a["deform_gradient"]
+            if di.ndim != 2 or di.shape[0] != g or dg.shape != di.shape + (3,):
+                raise TwinFormatError(f"{where}: deform_index/deform_gradient must have shapes (G={g}, k) and (G, k, 3), "
+                                      f"got {di.shape} and {dg.shape}")
+            if di.size and (di.min() < 0 or di.max() >= n):
+                raise TwinFormatError(f"{where}: deform_index must index the {n} particles")
         names = m["material"]["param_names"]
         if a["material_params"].shape != (len(names),):
             raise TwinFormatError(f"{where}: material_params must have shape ({len(names)},) for {names}, "

@@ -38,6 +38,8 @@ class TwinTrajectory:
         times: (T,) seconds from the start.
         substeps: substeps per frame the simulator used.
         conditions: the v0 (m/s), params, effects and gravity (m/s^2) simulated.
+        deformations: (T, G, 3, 3) the Gaussians' deformations since frame 0 when the twin's
+            Gaussians deform with the material (``deform_index`` in the twin), else None.
     """
 
     positions: torch.Tensor
@@ -45,6 +47,7 @@ class TwinTrajectory:
     times: np.ndarray
     substeps: int
     conditions: dict
+    deformations: Optional[torch.Tensor] = None
 
 
 def _torch_device(device: str) -> torch.device:
@@ -115,21 +118,39 @@ def simulate_twin(twin: DigitalTwin, v0: Optional[Sequence[float]] = None, param
         out = sim.simulate(x0, v.to(dev), pvec.to(dev), gravity=grav.to(dev), effect_params=evec.to(dev), n_frames=n)
         means = carry(torch.as_tensor(a["gaussian_means"]).to(dev), out.positions, x0,
                       torch.as_tensor(a["embed_index"]).to(dev), torch.as_tensor(a["embed_weight"]).to(dev))
+        deform = twin_deformations(twin, out.positions)
     conditions = {"v0": v.tolist(), "params": dict(zip(names, pvec.tolist())), "effects": sim.unpack_effects(evec),
                   "gravity": grav.tolist(), "n_frames": n}
     return TwinTrajectory(positions=out.positions.detach().cpu(), means=means.detach().cpu(),
-                          times=np.arange(n + 1) * twin.frame_dt, substeps=int(out.substeps), conditions=conditions)
+                          times=np.arange(n + 1) * twin.frame_dt, substeps=int(out.substeps), conditions=conditions,
+                          deformations=None if deform is None else deform.detach().cpu())
 
 
-def twin_gaussians(twin: DigitalTwin, means: Optional[torch.Tensor] = None, device: str = "cpu"):
-    """The twin's Gaussians (:class:`renderers.base.Gaussians`), at frame 0 or moved to ``means`` (G, 3)."""
+def twin_deformations(twin: DigitalTwin, positions: torch.Tensor) -> Optional[torch.Tensor]:
+    """(T, G, 3, 3) the Gaussians' deformations along ``positions`` (T, N, 3), frame 0 first, or
+    None when the twin's Gaussians keep their shapes."""
+    from toolkit.physics.embedding import carry_deformation
+
+    a = twin.arrays
+    if "deform_index" not in a:
+        return None
+    dev = positions.device
+    return carry_deformation(positions, positions[0], torch.as_tensor(a["deform_index"]).to(dev),
+                             torch.as_tensor(a["deform_gradient"]).to(dev))
+
+
+def twin_gaussians(twin: DigitalTwin, means: Optional[torch.Tensor] = None, device: str = "cpu",
+                   deformation: Optional[torch.Tensor] = None):
+    """The twin's Gaussians (:class:`renderers.base.Gaussians`), at frame 0 or moved to ``means``
+    (G, 3) and shaped by ``deformation`` (G, 3, 3) when given."""
     from renderers.base import Gaussians
 
     a = twin.arrays
     t = lambda k: None if k not in a else torch.as_tensor(a[k]).to(device)  # noqa: E731
     m = t("gaussian_means") if means is None else torch.as_tensor(means, dtype=torch.float32).to(device)
     return Gaussians(means=m, log_scales=t("gaussian_log_scales"), quats=t("gaussian_quats"),
-                     opacity_logits=t("gaussian_opacity_logits"), colors=t("gaussian_colors"), sh=t("gaussian_sh"))
+                     opacity_logits=t("gaussian_opacity_logits"), colors=t("gaussian_colors"), sh=t("gaussian_sh"),
+                     deformation=None if deformation is None else torch.as_tensor(deformation, dtype=torch.float32).to(device))
 
 
 def dataset_cameras(twin: DigitalTwin, indices: Optional[Sequence[int]] = None):
@@ -191,7 +212,9 @@ def render_trajectory(twin: DigitalTwin, traj: TwinTrajectory, cameras, renderer
     r = get_renderer(name)
     cams = cameras.to(dev)
     g0 = twin_gaussians(twin, device=str(dev))
-    frames = [r(g0.replace(means=m.to(dev)), cams).rgb.clamp(0, 1).cpu().numpy() for m in traj.means]
+    A = traj.deformations
+    frames = [r(g0.replace(means=m.to(dev), deformation=None if A is None else A[t].to(dev)), cams).rgb.clamp(0, 1).cpu().numpy()
+              for t, m in enumerate(traj.means)]
     return np.stack(frames).astype(np.float32)
 
 

@@ -244,7 +244,7 @@ class TwinViewer:
             elif self._truth is not None:
                 self._truth.visible = False
             if self.show_splats.value and self.means is not None:
-                self._splats = self.server.scene.add_gaussian_splats("/gaussians", self.means[t], self._cov, self._rgb,
+                self._splats = self.server.scene.add_gaussian_splats("/gaussians", self.means[t], self._covariances_at(t), self._rgb,
                                                                     self._opacity)
             elif self._splats is not None:
                 self._splats.visible = False
@@ -259,6 +259,18 @@ class TwinViewer:
         return {"frame": self._frame, "prediction_points": 0 if self._pred is None else int(len(self._pred.points)),
                 "truth_points": 0 if self._truth is None or not self._truth.visible else int(len(self._truth.points)),
                 "showing_fit": self.showing_fit, "n_frames": int(len(self.positions))}
+
+    def _covariances_at(self, t: int) -> np.ndarray:
+        """(G, 3, 3) the Gaussians' covariances at frame ``t``: the twin's, deformed with the
+        material (``A Sigma A^T``) when its Gaussians deform."""
+        import torch
+
+        from toolkit.twin.simulate import twin_deformations
+
+        if t == 0 or "deform_index" not in self.twin.arrays:
+            return self._cov
+        A = twin_deformations(self.twin, torch.as_tensor(self.positions[[0, t]]))[1].numpy()
+        return (A @ self._cov @ A.transpose(0, 2, 1)).astype(np.float32)
 
     def resimulate(self, params: Optional[dict] = None, v0: Optional[Sequence[float]] = None,
                    n_frames: Optional[int] = None) -> None:
