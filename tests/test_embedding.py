@@ -159,7 +159,7 @@ def test_deformed_gaussians_in_the_fit_follow_a_stretch_and_carry_gradients(tmp_
     from toolkit.physics.oracle import oracle_input
 
     inp = oracle_input(tiny_scene(tmp_path / "scene"), particle_spacing=0.02)
-    rigid = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given")
+    rigid = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="rigid")
     deformed = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="deformed")
     x0 = deformed.particles0.clone()
     A = torch.tensor([[1.4, 0.0, 0.0], [0.0, 0.7, 0.0], [0.0, 0.0, 1.0]])
@@ -176,3 +176,21 @@ def test_deformed_gaussians_in_the_fit_follow_a_stretch_and_carry_gradients(tmp_
     assert float(grad[1].abs().sum()) > 0
     with pytest.raises(ValueError, match="gaussian_shape must be one of"):
         InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="soft")
+
+
+def test_a_run_saved_before_deformed_shapes_replays_rigid(tmp_path):
+    """A checkpoint without the deformation buffers (saved before Gaussians could deform) loads
+    into a module built with the default deformed shapes as rigid: it renders as it was fitted."""
+    from tests.physics_fixtures import fit_sim, tiny_scene
+    from toolkit.physics import InversePhysicsModule
+    from toolkit.physics.oracle import oracle_input
+
+    inp = oracle_input(tiny_scene(tmp_path / "scene"), particle_spacing=0.02)
+    old = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given", gaussian_shape="rigid")
+    state = {k: v for k, v in old.state_dict().items() if not k.startswith("deform_")}
+    new = InversePhysicsModule(inp, sim=fit_sim(), renderer="torch", material_init="given")
+    assert new.gaussian_shape == "deformed" and new.deform_index.numel() > 0
+    new.load_state_dict(state)
+    x0 = new.particles0
+    assert new.deform_index.numel() == 0 and new.gaussian_shape == "rigid"
+    assert new.gaussians_at(torch.stack([x0, x0 * 1.1]), x0)[1].deformation is None

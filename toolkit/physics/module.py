@@ -103,11 +103,12 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         embedding: how Gaussians follow them: ``"idw"`` (inverse-distance average of the
             displacements, default) or ``"affine"`` (exact for any locally affine motion); see
             :mod:`toolkit.physics.embedding`.
-        gaussian_shape: ``"rigid"`` (each Gaussian keeps its stage-0 shape while it moves) or
-            ``"deformed"`` (its covariance follows the material around it, ``A Sigma A^T`` with ``A``
-            the local deformation gradient of its neighbouring particles since frame 0,
-            :func:`~toolkit.physics.embedding.carry_deformation`): a body that spreads or stretches
-            keeps covering what it covers in the images instead of breaking into rigid blobs.
+        gaussian_shape: ``"deformed"`` (default: each Gaussian's covariance follows the material
+            around it, ``A Sigma A^T`` with ``A`` the local deformation gradient of its neighbouring
+            particles since frame 0, :func:`~toolkit.physics.embedding.carry_deformation`, so a body
+            that spreads or stretches keeps covering what it covers in the images instead of
+            breaking into rigid blobs) or ``"rigid"`` (each keeps its stage-0 shape while it moves;
+            the default before 2026-11-26, and what runs saved before then replay with).
     """
 
     def __init__(
@@ -132,7 +133,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         seed: int = 0,
         embedding_neighbours: int = 8,
         embedding: str = "idw",
-        gaussian_shape: str = "rigid",
+        gaussian_shape: str = "deformed",
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -308,12 +309,19 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         return self.uncertainty_result
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # a run saved with another embedding (neighbour count or mode) keeps its own: the buffers take its shape
+        # a run saved before Gaussians could deform (no deform buffers) was fitted with rigid shapes: it keeps them
+        if prefix + "embed_index" in state_dict and prefix + "deform_index" not in state_dict:
+            state_dict[prefix + "deform_index"] = torch.zeros(0, 0, dtype=torch.int64)
+            state_dict[prefix + "deform_gradient"] = torch.zeros(0, 0, 3)
+        # a run saved with another embedding (neighbour count or mode, rigid or deformed shapes)
+        # keeps its own: the buffers take its shape
         for name in ("embed_index", "embed_weight", "deform_index", "deform_gradient"):
             saved = state_dict.get(prefix + name)
             if saved is not None and saved.shape != getattr(self, name).shape:
                 setattr(self, name, torch.empty_like(saved, device=getattr(self, name).device))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        if not self.deform_index.numel():
+            self.gaussian_shape = "rigid"
 
     def _sample(self, stage, step: int) -> tuple[list[int], list[int]]:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
