@@ -6,9 +6,9 @@ parameter and prints the image and geometric terms over the training frames (eve
 camera), total and per frame. Shows which frames and which term pull an estimate away from the
 truth (docs/results/five_families_small.md, "every family is fitted too soft").
 
-With ``--deform-covariances`` every Gaussian's covariance is also deformed by the affine motion of
-its 24 nearest particles, ``A Sigma A^T`` (:func:`toolkit.physics.embedding.local_deformation`),
-which the fit itself does not do yet: it shows where the image term's minimum would be if it did.
+``--gaussian-shape rigid|deformed`` sweeps with the Gaussians' shapes kept or deformed with the
+material (``A Sigma A^T``, :meth:`toolkit.physics.InversePhysicsModule.set_gaussian_shape`)
+instead of as the run was fitted; ``--deform-covariances`` is ``--gaussian-shape deformed``.
 
 Output: one JSON line of settings, then one per value: ``{param: value, "geometry", "image",
 "image_per_frame"}`` (frames 1 .. n_train-1).
@@ -17,7 +17,7 @@ Usage::
 
     projo4d run SCENE --geometry oracle --out RUN ...                      # a fitted run of a generated scene
     python benchmarks/fitted_landscape.py RUN mu 0.01 0.05 0.3 1 3.5 10
-    python benchmarks/fitted_landscape.py RUN mu 0.05 0.5 3.5 10 --deform-covariances
+    python benchmarks/fitted_landscape.py RUN mu 0.05 0.5 3.5 10 --gaussian-shape rigid
 """
 
 from __future__ import annotations
@@ -37,8 +37,10 @@ def main(argv=None) -> int:
     ap.add_argument("run", help="a finished run folder (physics/checkpoints/last.ckpt) of a scene with ground truth")
     ap.add_argument("param", help="material parameter to vary (the others stay at the truth)")
     ap.add_argument("values", type=float, nargs="+", help="physical values of the parameter")
-    ap.add_argument("--deform-covariances", action="store_true",
-                    help="deform each Gaussian's covariance with its neighbourhood's affine motion (not what the fit does)")
+    ap.add_argument("--gaussian-shape", choices=["rigid", "deformed"],
+                    help="Gaussians' shapes during the sweep (default: as the run was fitted)")
+    ap.add_argument("--deform-covariances", action="store_const", const="deformed", dest="gaussian_shape",
+                    help="the same as --gaussian-shape deformed")
     args = ap.parse_args(argv)
 
     import torch
@@ -61,10 +63,10 @@ def main(argv=None) -> int:
     cams = list(module.input.train_cameras)
     frames = list(range(1, module.input.n_train))
     x0 = (module.particles0 + module.particle_offset).detach()
-    if args.deform_covariances:
-        _deform_covariances(module, x0)
+    if args.gaussian_shape:
+        module.set_gaussian_shape(args.gaussian_shape)
     print(json.dumps({"run": str(args.run), "truth": gt["params"], "param": args.param, "frames": frames,
-                      "deform_covariances": args.deform_covariances}), flush=True)
+                      "gaussian_shape": module.gaussian_shape}), flush=True)
     for value in args.values:
         params = base.clone()
         params[names.index(args.param)] = value
@@ -75,23 +77,6 @@ def main(argv=None) -> int:
         print(json.dumps({args.param: value, "geometry": whole["geometry"], "image": whole["image"],
                           "image_per_frame": [round(x, 6) for x in per]}), flush=True)
     return 0
-
-
-def _deform_covariances(module, x0) -> None:
-    """Wrap ``module.gaussians_at`` so every Gaussian carries its neighbourhood's deformation
-    gradient since frame 0 (``Gaussians.deformation``: covariance ``A R S S^T R^T A^T``)."""
-    import torch
-
-    from toolkit.physics.embedding import local_deformation
-
-    idx, grad = local_deformation((module.gaussian_means0 + module.gaussian_offset).detach(), x0)
-    original = module.gaussians_at
-
-    def gaussians_at(positions, x0_, appearance_grad=True):
-        return [g.replace(deformation=torch.einsum("gki,gkj->gij", p.detach()[idx], grad))
-                for p, g in zip(positions, original(positions, x0_, appearance_grad))]
-
-    module.gaussians_at = gaussians_at
 
 
 if __name__ == "__main__":

@@ -130,26 +130,15 @@ def covariance_3d(log_scales: torch.Tensor, quats: torch.Tensor, deformation: Op
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """(..., 4) unit quaternions (w, x, y, z) with ``w >= 0`` of rotation matrices (..., 3, 3)
-    (Shepperd's method: the largest of the four squared components is taken from the trace)."""
-    m = R.reshape(-1, 3, 3)
-    t = torch.stack([1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                     1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1)
-    k = t.argmax(-1)
-    s = 2 * torch.sqrt(t.gather(1, k[:, None]).clamp_min(1e-12))[:, 0]
-    q = torch.empty(len(m), 4, dtype=R.dtype, device=R.device)
-    rows = [  # (w, x, y, z) * s for the four choices of the largest component
-        torch.stack([s * s / 4, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
-        torch.stack([m[:, 2, 1] - m[:, 1, 2], s * s / 4, m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
-        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], s * s / 4, m[:, 1, 2] + m[:, 2, 1]], -1),
-        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], s * s / 4], -1),
-    ]
-    for i, row in enumerate(rows):
-        sel = k == i
-        q[sel] = row[sel] / s[sel, None]
-    q = q / q.norm(dim=-1, keepdim=True)
+    """(..., 4) unit quaternions (w, x, y, z) with ``w >= 0`` of proper rotation matrices (..., 3, 3)
+    (scipy's conversion; not differentiable)."""
+    from scipy.spatial.transform import Rotation
+
+    m = R.detach().cpu().double().reshape(-1, 3, 3).numpy()
+    xyzw = torch.from_numpy(Rotation.from_matrix(m).as_quat())
+    q = torch.cat([xyzw[:, 3:], xyzw[:, :3]], dim=1)
     q = torch.where(q[:, :1] < 0, -q, q)
-    return q.reshape(R.shape[:-2] + (4,))
+    return q.reshape(R.shape[:-2] + (4,)).to(dtype=R.dtype, device=R.device)
 
 
 def bake_deformation(gaussians: Gaussians) -> Gaussians:

@@ -151,6 +151,18 @@ def test_model_options_override_merges_into_the_configs():
         RunSettings(scene="/x", model_options={"gaussian_shape": "soft"}).validate()
 
 
+def test_bad_model_options_stop_the_benchmark_before_any_work(tmp_path, capsys):
+    from toolkit.cli import main
+
+    args = ["benchmark", "--suite", str(tmp_path / "suite"), "--generate", "--families", "newtonian", "--per-family", "1",
+            "--size", "small", "--out", str(tmp_path / "bench"), "--model-options", '{"gaussian_shape": "soft"}']
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2
+    assert "model_options.gaussian_shape = 'soft'" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 # ------------------------------------------------------------------------------------ tables
 def _rec(scene, strategy, cd, emd, e_err, cams=3, material="neo_hookean"):
     return {"scene": scene, "material": material, "strategy": strategy, "cameras": cams, "curriculum": "X",

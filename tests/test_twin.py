@@ -110,6 +110,16 @@ def test_twin_file_is_versioned_and_checked(exported, tmp_path):
     broken = DigitalTwin(meta=twin.meta, arrays={k: v for k, v in twin.arrays.items() if k != "embed_index"})
     with pytest.raises(TwinFormatError, match="the array 'embed_index' is missing"):
         broken.validate("x.npz")
+    assert "deform_index" in twin.arrays  # fitted with the default deformed shapes
+    half = DigitalTwin(meta=twin.meta, arrays={k: v for k, v in twin.arrays.items() if k != "deform_gradient"})
+    with pytest.raises(TwinFormatError, match="deform_index and deform_gradient come together"):
+        half.validate("x.npz")
+    bad = DigitalTwin(meta=twin.meta, arrays={**twin.arrays, "deform_gradient": twin.arrays["deform_gradient"][:, :, :2]})
+    with pytest.raises(TwinFormatError, match=r"x.npz: deform_index/deform_gradient must have shapes \(G="):
+        bad.validate("x.npz")
+    outside = DigitalTwin(meta=twin.meta, arrays={**twin.arrays, "deform_index": twin.arrays["deform_index"] + 10**6})
+    with pytest.raises(TwinFormatError, match="deform_index must index the"):
+        outside.validate("x.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(TwinFormatError, match="junk.npz: not a readable .npz twin file"):
         DigitalTwin.load(tmp_path / "junk.npz")

@@ -187,6 +187,10 @@ def spec_from_args(args: argparse.Namespace):
     if options:
         raise BenchmarkError(f"--strategy-options for unknown strategies {sorted(options)}; strategies: "
                              f"{[s.label for s in strategies]}")
+    if args.model_options is not None:  # checked here, before any scene is generated or fitted
+        from toolkit.run_config import check_model_options
+
+        check_model_options(args.model_options)
     overrides = {}
     for key in ("geometry", "sim", "model_options", "downscale", "n_train", "seed", "device", "renderer"):
         v = getattr(args, key)

@@ -194,15 +194,9 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours, mode=embedding)
         self.register_buffer("embed_index", index)
         self.register_buffer("embed_weight", weight)
-        if gaussian_shape not in GAUSSIAN_SHAPES:
-            raise ValueError(f"gaussian_shape must be one of {GAUSSIAN_SHAPES}, got {gaussian_shape!r}")
-        self.gaussian_shape = gaussian_shape
-        if gaussian_shape == "deformed" and len(self.particles0) >= 4:
-            d_index, d_gradient = local_deformation(self.gaussian_means0, self.particles0)
-        else:
-            d_index, d_gradient = torch.zeros(0, 0, dtype=torch.int64), torch.zeros(0, 0, 3)
-        self.register_buffer("deform_index", d_index)
-        self.register_buffer("deform_gradient", d_gradient)
+        self.register_buffer("deform_index", torch.zeros(0, 0, dtype=torch.int64))
+        self.register_buffer("deform_gradient", torch.zeros(0, 0, 3))
+        self.set_gaussian_shape(gaussian_shape)
         # simulated particles compared with the stage-0 surface: those near it at frame 0
         self.register_buffer("surface_index", surface_particles(inp))
         # ---------------------------------------------------------- A: appearance
@@ -307,6 +301,21 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
 
         self.uncertainty_result = estimate_uncertainty(self, **options).to_dict()
         return self.uncertainty_result
+
+    def set_gaussian_shape(self, shape: str) -> None:
+        """``"deformed"``: fit the deformation coefficients of every Gaussian in its 24 nearest
+        particles at the current frame-0 state (:func:`~toolkit.physics.embedding.local_deformation`);
+        ``"rigid"``: drop them. See the ``gaussian_shape`` argument."""
+        if shape not in GAUSSIAN_SHAPES:
+            raise ValueError(f"gaussian_shape must be one of {GAUSSIAN_SHAPES}, got {shape!r}")
+        self.gaussian_shape = shape
+        dev = self.particles0.device
+        if shape == "deformed" and len(self.particles0) >= 4:
+            index, gradient = local_deformation((self.gaussian_means0 + self.gaussian_offset).detach(),
+                                                (self.particles0 + self.particle_offset).detach())
+        else:
+            index, gradient = torch.zeros(0, 0, dtype=torch.int64), torch.zeros(0, 0, 3)
+        self.deform_index, self.deform_gradient = index.to(dev), gradient.to(dev)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # a run saved before Gaussians could deform (no deform buffers) was fitted with rigid shapes: it keeps them
