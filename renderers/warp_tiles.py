@@ -15,7 +15,8 @@ Pipeline (one call renders the B cameras of a frame; they share width and height
    ``adjoint=True`` in the backward pass; its inputs are never overwritten).
 2. ``_count_tiles``: the exact axis-aligned bounding box of the ellipse on which
    ``opacity * exp(-q / 2) = 1/255`` (opacity-aware; a little padded against round-off), turned into
-   a rectangle of 16 x 16 px tiles. Not differentiated.
+   a rectangle of tiles (16 x 16 px on CUDA, 4 x 4 px on the CPU: :func:`tile_size`). Not
+   differentiated.
 3. Binning outside any differentiated region: a prefix sum of the per-Gaussian tile counts
    (torch; the total is read back to size the buffers: one host sync per call); ``_write_keys``
    writes one 64-bit key ``(camera * n_tiles + tile) << 32 | float_bits(z)`` per Gaussian-tile
@@ -34,7 +35,7 @@ Pipeline (one call renders the B cameras of a frame; they share width and height
 
 On the CPU, Warp runs a tiled launch with one lane per block unless
 ``wp.config.enable_cpu_blocks`` is set. The raster kernels handle any block width: each lane
-loops over ``256 / block_dim`` pixels of its tile; a one-lane block walks the list directly
+loops over ``tile² / block_dim`` pixels of its tile; a one-lane block walks the list directly
 (no shared-memory batches, no block reductions), wider blocks take the CUDA path above (the tests
 run it on the CPU with ``enable_cpu_blocks``). The warp shuffles are compiled only for CUDA; on
 the CPU each lane adds its own gradients.
@@ -60,10 +61,10 @@ from renderers.torch_reference import CLAMP_MARGIN, validate_render_inputs, gaus
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.cameras import Cameras
 
-__all__ = ["WarpTileRenderer", "TILE_SIZE", "BATCH"]
+__all__ = ["BATCH", "CPU_TILE_SIZE", "TILE_SIZE", "WarpTileRenderer", "tile_size"]
 
-TILE_SIZE = 16  # tile edge in pixels
-_TILE_PIXELS = TILE_SIZE * TILE_SIZE
+TILE_SIZE = 16  # tile edge in pixels on CUDA (one pixel per lane of a 256-lane block)
+CPU_TILE_SIZE = 4  # tile edge on the CPU, where a tile is one serial loop: shorter lists per pixel
 BATCH = 256  # Gaussians gathered into shared memory per step; the CUDA block size
 _BBOX_PAD = 1.0e-4  # relative padding of the cull box against round-off in the conic inversion
 
@@ -75,8 +76,6 @@ _T_MIN = wp.constant(T_MIN)
 _LOW_PASS = wp.constant(LOW_PASS)
 _CLAMP_MARGIN_C = wp.constant(CLAMP_MARGIN)
 _BBOX_PAD_C = wp.constant(_BBOX_PAD)
-_TILE = wp.constant(TILE_SIZE)
-_TILE_PIX = wp.constant(_TILE_PIXELS)
 _BATCH = wp.constant(BATCH)
 _LOG255 = wp.constant(math.log(255.0))
 
@@ -242,6 +241,7 @@ def _count_tiles(
     conic_opacity: wp.array[wp.vec4],
     width: int,
     height: int,
+    tile: int,
     counts: wp.array[wp.int32],
     rects: wp.array[wp.vec4i],
 ):
@@ -275,10 +275,10 @@ def _count_tiles(
     py1 = wp.clamp(wp.floor(p[1] + ext_y - 0.5), -1.0, fh - 1.0)
     if px1 < px0 or py1 < py0:
         return
-    tx0 = int(px0) // _TILE
-    tx1 = int(px1) // _TILE + 1
-    ty0 = int(py0) // _TILE
-    ty1 = int(py1) // _TILE + 1
+    tx0 = int(px0) // tile
+    tx1 = int(px1) // tile + 1
+    ty0 = int(py0) // tile
+    ty1 = int(py1) // tile + 1
     counts[tid] = wp.int32((tx1 - tx0) * (ty1 - ty0))
     rects[tid] = wp.vec4i(tx0, ty0, tx1, ty1)
 
@@ -403,6 +403,7 @@ def _raster_fwd(
     height: int,
     tiles_x: int,
     n_tiles: int,
+    tile_edge: int,
     background: wp.vec3,
     out_rgb: wp.array[wp.vec3],
     out_alpha: wp.array[float],
@@ -423,10 +424,10 @@ def _raster_fwd(
     tx = tile - ty * tiles_x
     start = ranges[blk, 0]
     end = ranges[blk, 1]
-    for ps in range(_TILE_PIX // bd):
+    for ps in range(tile_edge * tile_edge // bd):
         p = ps * bd + lane
-        px = tx * _TILE + p % _TILE
-        py = ty * _TILE + p // _TILE
+        px = tx * tile_edge + p % tile_edge
+        py = ty * tile_edge + p // tile_edge
         inside = px < width and py < height
         pcx = float(px) + 0.5
         pcy = float(py) + 0.5
@@ -495,6 +496,7 @@ def _raster_bwd(
     height: int,
     tiles_x: int,
     n_tiles: int,
+    tile_edge: int,
     background: wp.vec3,
     out_T: wp.array[float],
     out_count: wp.array[wp.int32],
@@ -518,10 +520,10 @@ def _raster_bwd(
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
     start = ranges[blk, 0]
-    for ps in range(_TILE_PIX // bd):
+    for ps in range(tile_edge * tile_edge // bd):
         p = ps * bd + lane
-        px = tx * _TILE + p % _TILE
-        py = ty * _TILE + p // _TILE
+        px = tx * tile_edge + p % tile_edge
+        py = ty * tile_edge + p // tile_edge
         inside = px < width and py < height
         pcx = float(px) + 0.5
         pcy = float(py) + 0.5
@@ -597,6 +599,19 @@ def _wa(t: torch.Tensor, dtype=None):
 _STREAMS: dict[tuple[int, int], wp.Stream] = {}
 
 
+def tile_size(device: torch.device) -> int:
+    """Tile edge in pixels for rendering on ``device``.
+
+    CUDA blocks (and CPU blocks when ``wp.config.enable_cpu_blocks`` is set) give one lane to
+    each pixel of a :data:`TILE_SIZE` tile. A one-lane CPU block walks its tile's list once per
+    pixel, so smaller tiles, whose lists hold only the splats that reach them, cost less there
+    (at 32-64 px about 3-4 times less than 16 px tiles). Images are identical for any edge.
+    """
+    if device.type == "cuda" or getattr(wp.config, "enable_cpu_blocks", False):
+        return TILE_SIZE
+    return CPU_TILE_SIZE
+
+
 def _warp_scope(device: torch.device):
     """Context manager that makes Warp launch on ``device`` (on CUDA: torch's current stream)."""
     if device.type == "cuda":
@@ -619,17 +634,17 @@ class _Binning:
 
 
 def _bin(
-    xy_depth: torch.Tensor, conic_opacity: torch.Tensor, B: int, N: int, width: int, height: int, device
+    xy_depth: torch.Tensor, conic_opacity: torch.Tensor, B: int, N: int, width: int, height: int, device, edge: int
 ) -> _Binning:
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    tiles_x = (width + edge - 1) // edge
+    tiles_y = (height + edge - 1) // edge
     n_tiles = tiles_x * tiles_y
     counts = torch.empty(B * N, dtype=torch.int32, device=device)
     rects = torch.empty(B * N, 4, dtype=torch.int32, device=device)
     wp.launch(
         _count_tiles,
         dim=B * N,
-        inputs=[_wa(xy_depth, wp.vec4), _wa(conic_opacity, wp.vec4), width, height],
+        inputs=[_wa(xy_depth, wp.vec4), _wa(conic_opacity, wp.vec4), width, height, edge],
         outputs=[_wa(counts), _wa(rects, wp.vec4i)],
     )
     offsets = torch.cumsum(counts, 0, dtype=torch.int64)
@@ -675,8 +690,9 @@ class _RasterizeFunction(torch.autograd.Function):
         device = means.device
         N = means.shape[0]
         B = w2c.shape[0]
-        tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-        n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+        edge = tile_size(device)
+        tiles_x = (width + edge - 1) // edge
+        n_tiles = tiles_x * ((height + edge - 1) // edge)
         xy_depth = torch.empty(B * N, 4, dtype=torch.float32, device=device)
         conic_opacity = torch.empty(B * N, 4, dtype=torch.float32, device=device)
         rgb = torch.empty(B, height, width, 3, dtype=torch.float32, device=device)
@@ -699,7 +715,7 @@ class _RasterizeFunction(torch.autograd.Function):
         ]
         with _warp_scope(device):
             wp.launch(_project, dim=B * N, inputs=proj_args, outputs=[_wa(xy_depth, wp.vec4), _wa(conic_opacity, wp.vec4)])
-            binning = _bin(xy_depth, conic_opacity, B, N, width, height, device)
+            binning = _bin(xy_depth, conic_opacity, B, N, width, height, device, edge)
             wp.launch_tiled(
                 _raster_fwd,
                 dim=[B * n_tiles],
@@ -713,6 +729,7 @@ class _RasterizeFunction(torch.autograd.Function):
                     height,
                     tiles_x,
                     n_tiles,
+                    edge,
                     wp.vec3(*background),
                 ],
                 outputs=[
@@ -729,6 +746,7 @@ class _RasterizeFunction(torch.autograd.Function):
             xy_depth, conic_opacity, binning.sorted_ids, binning.ranges, final_T, count,
         )  # fmt: skip
         ctx.settings = settings
+        ctx.edge = edge
         return rgb, alpha, depth
 
     @staticmethod
@@ -739,8 +757,9 @@ class _RasterizeFunction(torch.autograd.Function):
         device = means.device
         N = means.shape[0]
         B = w2c.shape[0]
-        tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-        n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+        edge = ctx.edge
+        tiles_x = (width + edge - 1) // edge
+        n_tiles = tiles_x * ((height + edge - 1) // edge)
 
         def cotangent(g: Optional[torch.Tensor], shape: tuple) -> torch.Tensor:
             if g is None:
@@ -776,6 +795,7 @@ class _RasterizeFunction(torch.autograd.Function):
                     height,
                     tiles_x,
                     n_tiles,
+                    edge,
                     wp.vec3(*background),
                     _wa(final_T.view(-1)),
                     _wa(count.view(-1)),

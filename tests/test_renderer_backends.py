@@ -457,3 +457,35 @@ def test_baked_deformation_renders_the_same_image(seed):
     r = get_renderer("torch")
     cams = _ring_cameras(40, 32, 2, "cpu")
     torch.testing.assert_close(r(baked, cams).rgb, r(gs.replace(deformation=A), cams).rgb, atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("edge", [1, 7, 16])
+def test_cpu_tile_edge_changes_nothing(edge, monkeypatch):
+    """The CPU's tile edge (:data:`renderers.warp_tiles.CPU_TILE_SIZE`, 4 px) only regroups the
+    work: images and gradients equal those of any other edge, also one that does not divide the
+    image, up to float32 summation order."""
+    import renderers.warp_tiles as wt
+
+    gs = _random_gaussians(300, 7, "cpu")
+    cams = _ring_cameras(37, 29, 2, "cpu")
+    gen = torch.Generator().manual_seed(8)
+    cot = torch.randn(2, 29, 37, 3, generator=gen)
+
+    def render():
+        leaves = {k: (None if getattr(gs, k) is None else getattr(gs, k).clone().requires_grad_(True)) for k in ATTRS}
+        out = get_renderer("warp")(Gaussians(**leaves), cams)
+        names = ["means", "log_scales", "opacity_logits", "colors"]
+        grads = torch.autograd.grad((out.rgb * cot).sum() + out.depth.sum(), [leaves[k] for k in names])
+        return out, dict(zip(names, grads))
+
+    assert wt.tile_size(torch.device("cpu")) == wt.CPU_TILE_SIZE == 4
+    base, g_base = render()
+    monkeypatch.setattr(wt, "CPU_TILE_SIZE", edge)
+    assert wt.tile_size(torch.device("cpu")) == edge
+    other, g_other = render()
+    assert float(base.alpha.mean()) > 0.2  # the scene covers the images
+    for key in ("rgb", "alpha", "depth"):
+        torch.testing.assert_close(getattr(other, key), getattr(base, key), rtol=0, atol=1e-5)
+    for key, g in g_base.items():
+        rel = float((g_other[key] - g).norm() / g.norm())
+        assert rel < 1e-5, f"gradient of {key} changed by {rel:.2g} with a {edge} px tile"
