@@ -16,6 +16,7 @@ from toolkit.metrics import (
     chamfer_loss,
     chamfer_sequence,
     earth_movers_distance,
+    emd_per_frame,
     emd_sequence,
     image_metrics,
     mask_on_black,
@@ -114,6 +115,23 @@ def test_emd_sequence_and_split_mean():
     train, future = split_mean(values, 3)
     assert train == pytest.approx(np.mean(values[:3])) and future == pytest.approx(values[3])
     assert math.isnan(split_mean(values, 4)[1])
+
+
+def test_emd_sequence_on_threads_equals_the_evaluators_stream():
+    """Frames solved on several threads give exactly the values of one stream walked frame by
+    frame (the evaluator's subsets: prediction first, then truth, from one ``random.Random``)."""
+    gen = np.random.default_rng(3)
+    preds = [gen.random((300 + 40 * t, 3)) for t in range(5)]
+    gts = [gen.random((260, 3)) + 0.05 * t for t in range(5)]
+    rng = random.Random(0)
+    expected = [earth_movers_distance(p, g, n_points=128, seed=rng) for p, g in zip(preds, gts)]
+    for workers in (1, 2, 5):
+        mean, values = emd_sequence(preds, gts, n_points=128, workers=workers)
+        assert values == expected and mean == pytest.approx(np.mean(expected))
+    assert len(set(expected)) == 5  # the frames differ, so an order mix-up would show
+    seen: list[int] = []
+    assert emd_per_frame(preds, gts, n_points=128, workers=3, on_frame=seen.append) == expected
+    assert seen == [0, 1, 2, 3, 4]
 
 
 def test_geometry_input_errors():

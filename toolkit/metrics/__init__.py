@@ -14,6 +14,7 @@ from toolkit.metrics.geometry import (
     chamfer_loss,
     chamfer_sequence,
     earth_movers_distance,
+    emd_per_frame,
     emd_sequence,
     split_mean,
 )
@@ -35,6 +36,7 @@ __all__ = [
     "chamfer_loss",
     "chamfer_sequence",
     "earth_movers_distance",
+    "emd_per_frame",
     "emd_sequence",
     "gaussian_window",
     "image_metrics",

@@ -21,7 +21,8 @@ Units follow the clouds (the datasets use metres); CD is in squared units x 1e3.
 from __future__ import annotations
 
 import random
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
 
 import numpy as np
@@ -37,6 +38,7 @@ __all__ = [
     "chamfer_sequence",
     "earth_movers_distance",
     "emd_sequence",
+    "emd_per_frame",
     "chamfer_loss",
     "split_mean",
 ]
@@ -126,14 +128,21 @@ def earth_movers_distance(
     Returns:
         Mean Euclidean (unsquared) distance over the optimal one-to-one assignment.
     """
-    rng = _rng(seed)
+    return _assignment_mean(*_emd_pair(pred, gt, n_points, _rng(seed), fewer))
+
+
+def _emd_pair(pred, gt, n_points: int, rng: random.Random, fewer: str) -> tuple[np.ndarray, np.ndarray]:
+    """The two subsampled clouds that :func:`earth_movers_distance` matches (draws from ``rng``)."""
     p, g = _points(pred, "pred"), _points(gt, "gt")
     if fewer == "shrink":
-        p, g = _subsample_pair(p, g, n_points, rng)
-    elif fewer == "replace":
-        p, g = (_sample_exact(c, n_points, rng) for c in (p, g))
-    else:
-        raise ValueError(f"fewer must be 'shrink' or 'replace', got {fewer!r}")
+        return _subsample_pair(p, g, n_points, rng)
+    if fewer == "replace":
+        return _sample_exact(p, n_points, rng), _sample_exact(g, n_points, rng)
+    raise ValueError(f"fewer must be 'shrink' or 'replace', got {fewer!r}")
+
+
+def _assignment_mean(p: np.ndarray, g: np.ndarray) -> float:
+    """Mean Euclidean distance of the optimal one-to-one assignment of ``p`` to ``g``."""
     cost = cdist(p, g)
     rows, cols = linear_sum_assignment(cost)
     return float(cost[rows, cols].mean())
@@ -179,19 +188,53 @@ def emd_sequence(
     n_points: int = EMD_POINTS,
     seed: int = 0,
     fewer: Literal["shrink", "replace"] = "shrink",
+    workers: int | None = None,
 ) -> tuple[float, list[float]]:
     """Earth Mover's distance of every frame of a sequence (see :func:`chamfer_sequence`).
+
+    ``workers`` threads solve the frames' assignments (default: see :func:`emd_per_frame`); the
+    values do not depend on it.
 
     Returns:
         ``(mean over frames, per-frame list)``.
     """
     _check_lengths(preds, gts)
-    rng = random.Random(seed)
-    values = [
-        earth_movers_distance(p, g, n_points=n_points, seed=rng, fewer=fewer)
-        for p, g in zip(preds, gts)
-    ]
+    values = emd_per_frame(preds, gts, n_points=n_points, seed=seed, fewer=fewer, workers=workers)
     return float(np.mean(values)), values
+
+
+def emd_per_frame(
+    preds: Sequence,
+    gts: Sequence,
+    *,
+    n_points: int = EMD_POINTS,
+    seed: int | random.Random = 0,
+    fewer: Literal["shrink", "replace"] = "shrink",
+    workers: int | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> list[float]:
+    """:func:`earth_movers_distance` of every frame, the subsets drawn in frame order from one
+    stream (the evaluator's), the assignments solved on ``workers`` threads (scipy's solver
+    releases the GIL). The default is this run's share of the cores
+    (:func:`toolkit.threads.resolve_threads` without its CPU cap of 1: ``PROJO4D_THREADS`` when a
+    benchmark set it, else the affinity-mask cores over ``PROJO4D_CONCURRENT_RUNS``), since these
+    are a few large independent tasks, not torch's small OpenMP regions. The values do not depend
+    on ``workers``. ``on_frame(t)`` is called in frame order once frame ``t``'s value is known."""
+    _check_lengths(preds, gts)
+    rng = _rng(seed)
+    pairs = [_emd_pair(p, g, n_points, rng, fewer) for p, g in zip(preds, gts)]
+    if workers is None:
+        from toolkit.threads import available_cores, resolve_threads
+
+        workers = resolve_threads(cap=available_cores()).threads
+    workers = max(1, min(len(pairs), workers))
+    values: list[float] = []
+    with ThreadPoolExecutor(workers) as pool:
+        for t, future in enumerate([pool.submit(_assignment_mean, *pair) for pair in pairs]):
+            values.append(future.result())
+            if on_frame is not None:
+                on_frame(t)
+    return values
 
 
 def split_mean(values: Sequence[float], n_train: int) -> tuple[float, float]:

@@ -168,6 +168,10 @@ def make_grid_update_kernel(
         clear_after: also zero each node's mass and momentum once read, so the grid is clear for the
             next substep's P2G without two memsets per substep (forward-only: this variant has no
             adjoint, and nothing may read the mass after it, e.g. tracer advection).
+
+    The kernel runs over a box of nodes: thread ``(i, j, k)`` updates node ``(i, j, k) + offset``
+    (launch dims = the box's; the whole grid with a zero offset). Nodes outside the box keep their
+    velocity; the caller guarantees that no particle's stencil reaches them.
     """
     has_ground = bool(has_ground)
     clear_after = bool(clear_after)
@@ -187,8 +191,12 @@ def make_grid_update_kernel(
         dx: float,
         dt: float,
         ground_j: int,
+        offset: wp.vec3i,
     ):
-        i, j, k = wp.tid()
+        ti, tj, tk = wp.tid()
+        i = ti + offset[0]
+        j = tj + offset[1]
+        k = tk + offset[2]
         m = grid_m[i, j, k]
         mv = grid_mv[i, j, k]
         v = wp.vec3(0.0)

@@ -363,10 +363,11 @@ class MPMSimulator:
                     origin, spec.dx, dt, cfg.volume, cfg.mass, status, step],
             device=self.device,
         )
+        offset, dims = self._update_box(s_in, tracers)
         wp.launch(
             grid_update,
-            dim=spec.dims,
-            inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt, self._ground_j],
+            dim=dims,
+            inputs=[grid.m, grid.mv, grid.v, gravity, effect_params, origin, spec.dx, dt, self._ground_j, offset],
             device=self.device,
         )
         if tracers is not None:
@@ -379,6 +380,33 @@ class MPMSimulator:
                     int(cfg.out_of_domain == "clamp"), status, self._violation_speed(), step],
             device=self.device,
         )
+
+    def _update_box(self, s_in: ParticleBuffers, tracers) -> tuple:
+        """``(offset, dims)`` of the grid nodes this substep's grid update visits.
+
+        On the CPU (one thread walks every node) only the box the particles' P2G stencils can
+        reach, plus one node of slack against round-off: a falling body fills a few percent of
+        its domain, so this is most of the grid update's cost. The particles' positions are read
+        in place (host memory). On CUDA, with tracers (their advection reads the whole grid), under
+        graph capture or with a non-finite position, the whole grid.
+        """
+        spec = self._grid
+        full = (wp.vec3i(0, 0, 0), spec.dims)
+        if self.device != "cpu" or tracers is not None or self.use_graphs():
+            return full
+        x = s_in.x.numpy()
+        if x.shape[0] == 0:
+            return full
+        lo, hi = x.min(axis=0), x.max(axis=0)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            return full
+        origin, dims = np.asarray(spec.origin, dtype=np.float64), np.asarray(spec.dims)
+        # a particle's stencil is base .. base + 2 with base = floor((x - origin) / dx - 0.5)
+        # (clipped as floats: a particle far outside the domain must not overflow the cast; the
+        # kernels clamp a base into [0, dims - 3], and so does the box)
+        first = np.clip(np.floor((lo - origin) / spec.dx - 0.5) - 1, 0, dims - 3).astype(np.int64)
+        last = np.clip(np.floor((hi - origin) / spec.dx - 0.5) + 3, 2, dims - 1).astype(np.int64)
+        return wp.vec3i(*(int(v) for v in first)), tuple(int(v) for v in last - first + 1)
 
     # ------------------------------------------------------------------ checks
     def _check_status(self, status, frame: int, substeps: int, state: ParticleBuffers) -> None:
