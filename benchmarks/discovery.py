@@ -345,7 +345,13 @@ def main(argv=None) -> int:
     t_start = time.time()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    thresholds = Thresholds.load(args.thresholds) if args.thresholds else DEFAULT_THRESHOLDS
+    # a sharded run's hidden scenes use the thresholds its null step calibrated (OUT/thresholds.json)
+    if args.thresholds:
+        thresholds = Thresholds.load(args.thresholds)
+    elif (out / "thresholds.json").is_file():
+        thresholds = Thresholds.load(out / "thresholds.json")
+    else:
+        thresholds = DEFAULT_THRESHOLDS
     try:
         i, n = (int(x) for x in args.shard.split("/"))
         if not 0 <= i < n:
