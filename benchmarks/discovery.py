@@ -406,8 +406,6 @@ def main(argv=None) -> int:
         if stats:
             thresholds = calibrate(stats, source=f"calibrated on {len(stats)} null scenes of {out.name}")
             thresholds.save(out / "thresholds.json")
-    elif (out / "thresholds.json").is_file() and not args.thresholds:
-        thresholds = Thresholds.load(out / "thresholds.json")
     if not records:
         return 0
     # decisions are re-derived with the final thresholds (the stored statistics do not depend on them)

@@ -17,7 +17,6 @@ Files written to ``out_dir``: ``evaluation.json`` (all numbers, per-frame lists 
 from __future__ import annotations
 
 import math
-import random
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -25,7 +24,7 @@ import numpy as np
 import torch
 
 from toolkit.atomic import write_json, write_with
-from toolkit.metrics import CD_MAX_POINTS, EMD_POINTS, chamfer_distance, emd_per_frame, image_metrics, split_mean
+from toolkit.metrics import CD_MAX_POINTS, EMD_POINTS, chamfer_sequence, emd_per_frame, image_metrics, split_mean
 
 __all__ = ["evaluate_module", "geometry_per_frame", "load_ground_truth_clouds"]
 
@@ -61,9 +60,9 @@ def _nan_to_none(x):
 @torch.no_grad()
 def geometry_per_frame(positions: Sequence[np.ndarray], clouds: Sequence[np.ndarray],
                        on_frame: Optional[Callable[[int], None]] = None) -> tuple[list[float], list[float]]:
-    """Chamfer distance (x1e3) and EMD (m) of every frame, exactly as :func:`chamfer_sequence` and
-    :func:`emd_sequence` compute them (one random stream per metric, seeded 0), one frame at a time
-    so ``on_frame(t)`` can report progress after frame ``t``.
+    """Chamfer distance (x1e3) and EMD (m) of every frame: :func:`chamfer_sequence` and
+    :func:`emd_per_frame` (one random stream per metric, seeded 0, as the evaluator draws them);
+    ``on_frame(t)`` reports progress once frame ``t``'s EMD, the slow part, is known.
 
     Args:
         positions: T predicted clouds, each (N, 3) metres.
@@ -71,8 +70,7 @@ def geometry_per_frame(positions: Sequence[np.ndarray], clouds: Sequence[np.ndar
     """
     if len(positions) != len(clouds):
         raise ValueError(f"{len(positions)} predicted frames but {len(clouds)} ground-truth clouds")
-    rng_cd = random.Random(0)
-    cd = [chamfer_distance(p, g, max_points=CD_MAX_POINTS, seed=rng_cd) for p, g in zip(positions, clouds)]
+    _, cd = chamfer_sequence(positions, clouds, max_points=CD_MAX_POINTS, seed=0)
     # the EMD's assignments dominate: they run on this run's share of the cores (emd_per_frame)
     emd = emd_per_frame(positions, clouds, n_points=EMD_POINTS, seed=0, fewer="shrink", on_frame=on_frame)
     return cd, emd
