@@ -19,6 +19,7 @@ Usage::
 
     python benchmarks/render_throughput.py                        # CUDA when present
     python benchmarks/render_throughput.py --device cpu --small   # quick CPU run
+    python benchmarks/render_throughput.py --device cpu --small --cpu-tile-edges 16 4   # CPU tile edges
 
 Benchmarks are never part of the test suite.
 """
@@ -134,7 +135,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats (default 20 on CUDA, 5 on CPU)")
     parser.add_argument("--no-validate", action="store_true", help="skip per-call input checks where a backend allows it")
+    parser.add_argument("--cpu-tile-edges", type=int, nargs="+", default=None, metavar="PX",
+                        help="on the CPU, also time the warp backend with these tile edges (default: its own, "
+                             "renderers.warp_tiles.CPU_TILE_SIZE); e.g. 16 4 compares the old and new edge")
     args = parser.parse_args(argv)
+    if args.cpu_tile_edges and args.device.startswith("cuda"):
+        parser.error(f"--cpu-tile-edges applies to --device cpu, not {args.device!r} (CUDA tiles are 16 px)")
+    if args.cpu_tile_edges and min(args.cpu_tile_edges) < 1:
+        parser.error(f"--cpu-tile-edges must be >= 1 px, got {args.cpu_tile_edges}")
 
     device = args.device
     if device.startswith("cuda") and not torch.cuda.is_available():
@@ -148,9 +156,14 @@ def main(argv: list[str] | None = None) -> None:
     for n in ns:
         for res in resolutions:
             baseline = None
-            for name in names:
+            for name, edge in [(b, e) for b in names for e in (args.cpu_tile_edges if b == "warp" and args.cpu_tile_edges else [None])]:
                 line = {"backend": name, "device": device, "device_name": device_name}
                 line.update(n=n, width=res, height=res, cams=CAMS)
+                if edge is not None:
+                    import renderers.warp_tiles as warp_tiles
+
+                    warp_tiles.CPU_TILE_SIZE = edge
+                    line["cpu_tile_edge"] = edge
                 try:
                     line.update(bench_one(name, n, res, device, args.warmup, repeats, not args.no_validate))
                 except Exception as exc:  # report and go on with the other backends
