@@ -185,6 +185,24 @@ def test_frame_order_is_a_pure_function_of_the_step():
     assert all(m.frame_for_step(10 + k, 5) <= (k + 1) * 4 // 20 for k in range(20))
 
 
+
+def test_compressed_schedule_scales_every_iteration_count():
+    full = Stage0Schedule.full()
+    assert Stage0Schedule.compressed(40_000) == full
+    ten = Stage0Schedule.compressed(10_000)
+    assert (ten.iterations, ten.warmup, ten.densify_from, ten.densify_until, ten.densify_interval) == (10_000, 750, 125, 3_750, 25)
+    assert (ten.opacity_reset_interval, ten.sh_increase_interval) == (750, 250)
+    assert (ten.position_lr_max_steps, ten.deform_lr_max_steps) == (7_500, 10_000)
+    # rates and weights are not iteration counts: unchanged
+    assert (ten.position_lr_init, ten.feature_lr, ten.lambda_dssim) == (full.position_lr_init, full.feature_lr, full.lambda_dssim)
+    # the learning rate reaches its final value at the same fraction of the run
+    from toolkit.scene.stage0 import exponential_lr
+    assert math.isclose(exponential_lr(5_000, ten.position_lr_init, ten.position_lr_final, ten.position_lr_max_steps),
+                        exponential_lr(20_000, full.position_lr_init, full.position_lr_final, full.position_lr_max_steps))
+    for bad in (399, 0, 1.5e4, True):
+        with pytest.raises(ValueError, match="iterations must be an integer >= 400"):
+            Stage0Schedule.compressed(bad)
+
 def test_cached_ssim_matches_the_metric():
     from toolkit.metrics import ssim_torch
     from toolkit.scene.stage0 import _SSIM

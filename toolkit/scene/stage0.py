@@ -205,6 +205,33 @@ class Stage0Schedule(DictSettings):
         )
 
     @classmethod
+    def compressed(cls, iterations: int) -> "Stage0Schedule":
+        """GIC's full schedule with every iteration count scaled by ``iterations / 40_000``
+        (warm-up, densification window and interval, opacity resets, SH steps, learning-rate
+        decay); rates, thresholds and loss weights unchanged. ``compressed(40_000) == full()``.
+        Used by ``benchmarks/whole_scene.py`` to trade stage-0 time for geometry (issue #16).
+
+        Raises:
+            ValueError: ``iterations`` below 400 (a densification interval under one iteration).
+        """
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 400:
+            raise ValueError(f"iterations must be an integer >= 400, got {iterations!r}")
+        base = cls.full()
+        f = iterations / base.iterations
+
+        def scaled(n: int) -> int:
+            return max(1, int(round(n * f)))
+
+        return cls(**{**base.to_dict(), "iterations": iterations, "warmup": scaled(base.warmup),
+                      "position_lr_max_steps": scaled(base.position_lr_max_steps),
+                      "deform_lr_max_steps": scaled(base.deform_lr_max_steps),
+                      "densify_from": scaled(base.densify_from), "densify_until": scaled(base.densify_until),
+                      "densify_interval": scaled(base.densify_interval),
+                      "opacity_reset_interval": scaled(base.opacity_reset_interval),
+                      "sh_increase_interval": scaled(base.sh_increase_interval),
+                      "log_every": min(base.log_every, scaled(base.log_every))})
+
+    @classmethod
     def defaults(cls) -> "Stage0Schedule":
         return cls.full()
 
