@@ -10,6 +10,7 @@ term, wrong sign, lost shear stiffness at F = I) gives errors of order 100%.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import warp as wp
@@ -35,9 +36,10 @@ def _verify_array_access():
     wp.config.verify_autograd_array_access = previous
 
 
-def _scene(material: str, device: str, checkpoint_every: int = 7, effects=(), graphs="auto", deterministic=False):
+def _scene(material: str, device: str, checkpoint_every: int = 7, effects=(), graphs="auto", deterministic=False,
+           keep_tapes="auto"):
     cfg = SimConfig(dx=0.05, substeps=20, checkpoint_every=checkpoint_every, boundary="sticky", graphs=graphs,
-                    deterministic=deterministic)
+                    deterministic=deterministic, keep_tapes=keep_tapes)
     sim = MPMSimulator(material, cfg, effects=effects, device=device)
     x0 = block((5, 5, 5), 0.025, (0.5, 0.08, 0.5))
     gen = torch.Generator().manual_seed(0)
@@ -97,10 +99,11 @@ def test_gradients_match_finite_differences(material, device):
 @pytest.mark.parametrize("material", ["neo_hookean", "plasticine"])
 def test_chunked_gradients_equal_unchunked(material, device):
     grads = []
-    # the last variant replays each chunk's recompute + adjoint as a captured Warp graph
-    for every, graphs in ((1, False), (7, False), (1000, False), (7, True)):
+    # graphs: each chunk's recompute + adjoint (or kept forward and adjoint) replayed as captured Warp graphs
+    for every, graphs, keep in ((1, False, False), (7, False, False), (1000, False, False), (7, True, False),
+                                (7, False, True), (7, True, True)):
         # deterministic atomics: on CUDA the order of float atomics would otherwise differ between runs
-        sim, x0, w, _ = _scene(material, device, checkpoint_every=every, graphs=graphs, deterministic=True)
+        sim, x0, w, _ = _scene(material, device, checkpoint_every=every, graphs=graphs, deterministic=True, keep_tapes=keep)
         leaves = [t.clone().requires_grad_() for t in (x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_raw(CASES[material]),
                                                        torch.tensor([0.0, -9.8, 0.0]))]
         _loss(sim, w, *leaves).backward()
@@ -139,8 +142,8 @@ def test_effect_parameter_gradients(effect, values, step, device):
 
 
 def test_memory_does_not_grow_with_substeps(device):
-    """Checkpoint buffers depend on the chunk length, not on the number of substeps."""
-    sim, x0, w, _ = _scene("neo_hookean", device, checkpoint_every=5)
+    """Without kept tapes, checkpoint buffers depend on the chunk length, not on the number of substeps."""
+    sim, x0, w, _ = _scene("neo_hookean", device, checkpoint_every=5, keep_tapes=False)
     for substeps in (10, 40):
         sim.config.substeps = substeps
         leaves = [t.clone().requires_grad_() for t in (x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_raw(CASES["neo_hookean"]),
@@ -241,3 +244,90 @@ def test_cpu_grid_update_box_equals_the_whole_grid(material, monkeypatch):
         assert torch.equal(a, b) and a.abs().max() > 0
     assert float(pos_box[:, :, 1].min()) < 0.06  # the body reached the ground layers
     assert visited and max(visited) < 0.5
+
+
+def _grads_and_states(sim, x0, w, material, n_frames=4):
+    leaves = [t.clone().requires_grad_() for t in (x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_raw(CASES[material]),
+                                                   torch.tensor([0.0, -9.8, 0.0]))]
+    params = sim.material.to_physical(leaves[2])
+    out = sim.simulate(leaves[0], leaves[1], params, gravity=leaves[3], n_frames=n_frames)
+    loss = (out.positions[1:] * w[:n_frames].to(out.positions.device)).sum() + 0.3 * (out.velocities[1:] * w[:n_frames].to(out.positions.device)).sum()
+    loss.backward()
+    return out.positions.detach().cpu(), [t.grad.cpu() for t in leaves]
+
+
+@pytest.mark.parametrize("material", ["neo_hookean", "plasticine", "sand"])
+def test_kept_tapes_equal_the_recompute(material, device):
+    """Kept tapes (toolkit.mpm.tapes: the forward pass records every chunk, the backward pass runs
+    adjoints only) give the states and gradients of the slow, obvious recompute from checkpoints,
+    bit for bit (deterministic atomics on CUDA), through a bounce; the forward really kept its
+    tapes (one buffer set per chunk) and the recompute pool was never allocated."""
+    results = {}
+    for keep in (False, True):
+        sim, x0, w, _ = _scene(material, device, keep_tapes=keep, deterministic=True)
+        results[keep] = _grads_and_states(sim, x0, w, material)
+        pools = [k for k in sim._buffers if k[0] == "pool"]
+        kept = [v for k, v in sim._buffers.items() if k[0] == "tapes"]
+        if keep:
+            assert not pools and len(kept) == 1 and len(kept[0].pools) == len(sim.chunks(4, sim.last_plan.substeps))
+        else:
+            assert pools and not kept
+    (pos_a, grads_a), (pos_b, grads_b) = results[False], results[True]
+    assert torch.equal(pos_a, pos_b)
+    assert float(pos_a[:, :, 1].min()) < 0.06  # the body reached the ground layers
+    for a, b in zip(grads_a, grads_b):
+        assert torch.equal(a, b) and a.abs().max() > 0
+
+
+def test_kept_tapes_overwritten_by_a_later_forward_fall_back_to_the_recompute(device):
+    """Two differentiable rollouts before one backward pass: the first one's tapes were reused by
+    the second, so its backward pass recomputes from its checkpoints (and the second's then does
+    too, as the recompute rewrote the inputs its tapes read); every gradient still equals the one
+    computed alone. A forward-only rollout in between invalidates the tapes the same way."""
+    sim, x0, w, _ = _scene("plasticine", device, keep_tapes=True, deterministic=True)
+    values = [{"E": 2e4, "nu": 0.3, "yield_stress": 300.0}, {"E": 5e4, "nu": 0.2, "yield_stress": 500.0}]
+
+    def loss_of(raw, v0):
+        return _loss(sim, w, x0, v0, raw, torch.tensor([0.0, -9.8, 0.0]))
+
+    alone = []
+    for vals in values:
+        raw = sim.material.to_raw(vals).requires_grad_()
+        v0 = torch.tensor([0.3, -0.5, 0.1], requires_grad=True)
+        loss_of(raw, v0).backward()
+        alone.append((raw.grad.clone(), v0.grad.clone()))
+    leaves = [(sim.material.to_raw(vals).requires_grad_(), torch.tensor([0.3, -0.5, 0.1], requires_grad=True)) for vals in values]
+    losses = [loss_of(*pair) for pair in leaves]
+    losses[0].backward()
+    losses[1].backward()
+    for (raw, v0), (g_raw, g_v0) in zip(leaves, alone):
+        assert torch.equal(raw.grad, g_raw) and torch.equal(v0.grad, g_v0)
+    raw, v0 = sim.material.to_raw(values[0]).requires_grad_(), torch.tensor([0.3, -0.5, 0.1], requires_grad=True)
+    loss = loss_of(raw, v0)
+    sim.rollout(x0, torch.tensor([1.0, 0.0, 0.0]), sim.material.to_physical(sim.material.to_raw(values[1])), n_frames=2)
+    loss.backward()
+    assert torch.equal(raw.grad, alone[0][0]) and torch.equal(v0.grad, alone[0][1])
+
+
+def test_kept_tapes_follow_the_memory_limit():
+    """keep_tapes="auto" keeps the tapes only when every chunk's buffers take at most half the
+    memory limit; the estimate counts (length + 1) states and length grids per chunk, with gradients."""
+    from toolkit.mpm.tapes import KeptTapes, tape_bytes
+
+    sim, x0, w, _ = _scene("neo_hookean", "cpu")
+    _grads_and_states(sim, x0, w, "neo_hookean", n_frames=2)
+    chunks = sim.chunks(2, sim.last_plan.substeps)
+    need = tape_bytes(sim.grid.dims, x0.shape[0], [length for _, _, length in chunks])
+    kept = [v for k, v in sim._buffers.items() if k[0] == "tapes"][0]
+    allocated = sum(p.grads.base.capacity + p.grid_values.base.capacity for p in kept.pools.values())
+    allocated += sum(len(p.grids) * int(np.prod(sim.grid.dims)) * 12 + sum(a.capacity for st in p.states for a in st.arrays())
+                     for p in kept.pools.values())
+    assert 0.9 * need <= allocated <= 1.1 * need
+    sim.config.memory_limit = 2 * need
+    assert KeptTapes.fit(sim, x0.shape[0], chunks)
+    sim.config.memory_limit = 2 * need - 1
+    assert not KeptTapes.fit(sim, x0.shape[0], chunks)
+    sim.config.keep_tapes = True
+    assert KeptTapes.fit(sim, x0.shape[0], chunks)
+    sim.config.keep_tapes = False
+    assert not KeptTapes.fit(sim, x0.shape[0], chunks)

@@ -1,4 +1,5 @@
-"""The torch bridge of the simulator: a ``torch.autograd.Function`` with chunked checkpointing."""
+"""The torch bridge of the simulator: a ``torch.autograd.Function`` with chunked checkpointing
+(the chunks recomputed on the backward pass, or their forward tapes kept: :mod:`toolkit.mpm.tapes`)."""
 
 from __future__ import annotations
 
@@ -21,8 +22,11 @@ class SimulateFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sim, n_frames, holder, x0, v0, params, gravity, effect_params):
         with sim.stream():
-            out = sim.forward_with_retries(x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints=True)
+            out = sim.forward_with_retries(x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints=True,
+                                           tape_grads=tuple(ctx.needs_input_grad[5:8]))
         holder["substeps"] = out["substeps"]
+        tapes = out.get("tapes")
+        ctx.tapes = (tapes, tapes.generation) if tapes is not None else None
         ctx.sim = sim
         ctx.n_frames = n_frames
         ctx.substeps = out["substeps"]
@@ -47,23 +51,26 @@ class SimulateFunction(torch.autograd.Function):
         g_vel = torch.zeros((ctx.n_frames + 1, n, 3), device=dev) if g_vel is None else g_vel.contiguous()
         chunks = sim.chunks(ctx.n_frames, substeps)
         dt = sim.config.frame_dt / substeps
-        need_params, need_gravity, need_effects = ctx.needs_input_grad[5:8]
-        shared_row = params.shape[0] == 1 and n > 1
-        if need_params and shared_row:
-            # one row per particle: every particle's adjoint adds into its own row instead of all
-            # of them contending for the same P floats; the rows are summed below
-            params = params.expand(n, params.shape[1]).contiguous()
-        per_particle = int(params.shape[0] == n and n > 1)
-        grads = (need_params, need_gravity, need_effects and effect_params.shape[0] > 0)
+        need = ctx.needs_input_grad[5:8]
+        kept = None
+        if ctx.tapes is not None and ctx.tapes[1] == sim.generation == ctx.tapes[0].generation:
+            kept = ctx.tapes[0]  # no forward pass since ours: its tapes are intact
+        ctx.tapes = None
 
         with sim.stream():
-            pool = sim._pool(n, max(length for _, _, length in chunks))
-            states, grids = pool.states, pool.grids
-            wp_params, wp_gravity, wp_effects = sim._inputs(params, gravity, effect_params, grads)
+            if kept is not None:
+                wp_params, wp_gravity, wp_effects, per_particle = kept.inputs
+                shared_row = bool(need[0]) and params.shape[0] == 1 and n > 1
+            else:
+                sim.generation += 1  # the recompute reuses the input arrays that kept tapes read
+                wp_params, wp_gravity, wp_effects, per_particle, shared_row = sim.gradient_inputs(
+                    params, gravity, effect_params, n, need)
+                pool = sim._pool(n, max(length for _, _, length in chunks))
+                states, grids = pool.states, pool.grids
             for a in (wp_params, wp_gravity, wp_effects):
                 if a.grad is not None:
                     a.grad.zero_()
-            carry = sim._persistent(("carry", n), lambda: [wp.zeros_like(a) for a in states[0].arrays()])
+            carry = sim._persistent(("carry", n), lambda: [wp.zeros_like(a) for a in ctx.checkpoints[0].arrays()])
             for a in carry:
                 a.zero_()
             g_pos_wp = wp.from_torch(g_pos, dtype=wp.vec3)
@@ -90,6 +97,9 @@ class SimulateFunction(torch.autograd.Function):
                 if local + length == substeps:
                     wp.launch(accumulate_vec3, dim=n, inputs=[carry[0], g_pos_wp[frame + 1]], device=sim.device)
                     wp.launch(accumulate_vec3, dim=n, inputs=[carry[1], g_vel_wp[frame + 1]], device=sim.device)
+                if kept is not None:
+                    kept.backward_chunk(c, carry, graphs)
+                    continue
                 states[0].assign(ctx.checkpoints[c])
                 if graphs is None:
                     chunk_backward(local, length)
@@ -106,6 +116,7 @@ class SimulateFunction(torch.autograd.Function):
         g_x0 = wp.to_torch(carry[0]) + g_pos[0]
         g_v0 = wp.to_torch(carry[1]) + g_vel[0]
         g_params = g_gravity = g_effects = None
+        need_params, need_gravity, need_effects = need
         if need_params:
             g_params = wp.to_torch(wp_params.grad).clone()
             if shared_row:
@@ -113,6 +124,6 @@ class SimulateFunction(torch.autograd.Function):
         if need_gravity:
             g_gravity = wp.to_torch(wp_gravity.grad).clone().reshape(3)
         if need_effects:
-            g_effects = (wp.to_torch(wp_effects.grad)[: effect_params.shape[0]].clone() if grads[2]
+            g_effects = (wp.to_torch(wp_effects.grad)[: effect_params.shape[0]].clone() if effect_params.shape[0] > 0
                          else torch.zeros_like(effect_params))
         return None, None, None, g_x0, g_v0, g_params, g_gravity, g_effects

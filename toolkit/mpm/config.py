@@ -93,6 +93,11 @@ class SimConfig:
             free memory of the CUDA device, or half the available RAM on CPU.
         checkpoint_every: substeps per checkpoint chunk for gradients (state kept at chunk starts,
             the chunk recomputed on the backward pass). Chunks never straddle frames.
+        keep_tapes: keep every chunk's taped forward pass of a differentiable rollout, so the
+            backward pass runs adjoints only instead of recomputing each chunk first (one forward
+            pass less per gradient; memory grows with all substeps instead of one chunk; see
+            :mod:`toolkit.mpm.tapes`): ``"auto"`` (default) when those buffers take at most half
+            the memory limit, True, False. Results are bit-identical either way.
         deterministic: Warp's deterministic mode for float atomics on CUDA (reproducible, slower).
     """
 
@@ -116,6 +121,7 @@ class SimConfig:
     max_dt_halvings: int = 3
     memory_limit: Optional[float] = None
     checkpoint_every: int = 25
+    keep_tapes: bool | str = "auto"
     deterministic: bool = False
 
     def __post_init__(self) -> None:
@@ -140,6 +146,7 @@ class SimConfig:
         need(self.margin >= 0, f"margin must be >= 0 metres, got {self.margin!r}")
         need(isinstance(self.checkpoint_every, int) and self.checkpoint_every >= 1, f"checkpoint_every must be an integer >= 1, got {self.checkpoint_every!r}")
         need(self.graphs in (True, False, "auto"), f"graphs must be True, False or 'auto', got {self.graphs!r}")
+        need(self.keep_tapes in (True, False, "auto"), f"keep_tapes must be True, False or 'auto', got {self.keep_tapes!r}")
         need(self.max_dt_halvings >= 0, f"max_dt_halvings must be >= 0, got {self.max_dt_halvings!r}")
         need(0 < self.wave_cfl <= 1.0, f"wave_cfl must be in (0, 1], got {self.wave_cfl!r}")
         need(isinstance(self.max_substeps, int) and self.max_substeps >= self.substeps,

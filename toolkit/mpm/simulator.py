@@ -14,7 +14,9 @@ frame); the backward pass walks the chunks in reverse, restores the chunk's star
 recomputes the chunk on a ``wp.Tape`` (each substep with its own particle and grid buffers, as
 Warp's adjoints read the arrays' current contents) and runs its adjoint. Memory is
 ``O(chunk x (particles + grid))`` for the buffers plus ``O(n_chunks x particles)`` for the
-checkpoints.
+checkpoints. When every chunk's buffers fit (``SimConfig.keep_tapes``), the forward pass records
+each chunk on its own tape instead and the backward pass skips the recompute
+(:mod:`toolkit.mpm.tapes`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 import torch
@@ -33,6 +35,8 @@ from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
 from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
 from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult, TapedChunk
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
+if TYPE_CHECKING:  # pragma: no cover
+    from toolkit.mpm.tapes import KeptTapes
 from toolkit.mpm.kernels import (
     NO_FLAG,
     compose_effects,
@@ -94,6 +98,8 @@ class MPMSimulator:
         self.last_plan: Optional[SubstepPlan] = None
         self._differentiable = False
         self._memory_checked: Optional[tuple] = None  # (grid, differentiable, bytes) last found to fit
+        #: forward passes run so far; a kept tape belongs to one of them (toolkit.mpm.tapes)
+        self.generation = 0
         ground = self.config.ground_height
         if ground is not None and any(e.registry_name == "ground_friction" for e in self.effects) and self.config.boundary == "sticky":
             log.warning("ground_friction has no effect with the 'sticky' boundary (infinite friction); use 'slip' or 'separate'")
@@ -589,10 +595,14 @@ class MPMSimulator:
 
     # ------------------------------------------------------------------ forward core
     def forward_with_retries(self, x0, v0, params, gravity, effect_params, n_frames, keep_checkpoints,
-                             return_deformation=False, tracers=None):
+                             return_deformation=False, tracers=None, tape_grads=None):
         """Forward pass at the planned substeps (:meth:`plan_substeps`), with optional automatic dt
         halving on CFL/NaN failures (the doubled count is kept for later rollouts) and grid growth when
-        a particle leaves an auto-sized grid (``out_of_domain="grow"``)."""
+        a particle leaves an auto-sized grid (``out_of_domain="grow"``).
+
+        ``tape_grads`` (with ``keep_checkpoints``): which of params, gravity and effect_params the
+        backward pass will need gradients of; the chunks are then kept on tapes when they fit
+        (``out["tapes"]``, see :mod:`toolkit.mpm.tapes`)."""
         plan = self.plan_substeps(params, v0, gravity)
         if plan.capped:
             log.warning("the material needs %d substeps per frame at these parameters (wave speed %.3g m/s); "
@@ -603,7 +613,7 @@ class MPMSimulator:
         while True:
             try:
                 return self._forward(x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints,
-                                     return_deformation, tracers)
+                                     return_deformation, tracers, tape_grads)
             except OutOfDomainError as err:
                 if not self._can_grow(err) or grows >= 4:
                     raise
@@ -714,18 +724,52 @@ class MPMSimulator:
             tracers[:] = tr_after
         return result
 
+    def gradient_inputs(self, params: torch.Tensor, gravity: torch.Tensor, effect_params: torch.Tensor, n: int,
+                        need: Sequence[bool]) -> tuple:
+        """``(wp_params, wp_gravity, wp_effects, per_particle, shared_row)`` for a pass whose adjoint
+        needs the gradients ``need`` = (params, gravity, effect_params).
+
+        A shared parameter row whose gradient is wanted is expanded to one row per particle: every
+        particle's adjoint then adds into its own row instead of all of them contending for the
+        same P floats (the caller sums the rows when ``shared_row``)."""
+        shared_row = bool(need[0]) and params.shape[0] == 1 and n > 1
+        if shared_row:
+            params = params.expand(n, params.shape[1]).contiguous()
+        per_particle = int(params.shape[0] == n and n > 1)
+        grads = (bool(need[0]), bool(need[1]), bool(need[2]) and effect_params.shape[0] > 0)
+        return (*self._inputs(params, gravity, effect_params, grads), per_particle, shared_row)
+
+    def _kept_tapes(self, n: int, chunks) -> Optional["KeptTapes"]:
+        """The simulator's :class:`~toolkit.mpm.tapes.KeptTapes` when a rollout's chunks fit, else None."""
+        from toolkit.mpm.tapes import KeptTapes
+
+        key = ("tapes", n)
+        held = self._buffers[key].held_bytes() if key in self._buffers else 0
+        if not KeptTapes.fit(self, n, chunks, held):
+            return None
+        return self._persistent(key, lambda: KeptTapes(self, n))
+
     def _forward(self, x0, v0, params, gravity, effect_params, n_frames, substeps, keep_checkpoints, return_deformation,
-                 tracers=None):
+                 tracers=None, tape_grads=None):
         n = x0.shape[0]
         dt = self.config.frame_dt / substeps
         dev = self._torch_device
         ground = self.config.ground_height
         self._ground_j = self._grid.ground_layer(ground) if ground is not None else -1
+        self.generation += 1
+        units = self.chunks(n_frames, substeps) if keep_checkpoints else [(f, f * substeps, substeps) for f in range(n_frames)]
+        tapes = None
+        if keep_checkpoints and tape_grads is not None and tracers is None and not return_deformation:
+            tapes = self._kept_tapes(n, units)
         a, b, grid = self._pingpong(n)
         grid.clear()  # the substeps keep it clear from here on (see _substep's grid_mode)
         status = self._status()
-        per_particle = int(params.shape[0] == n and n > 1)
-        wp_params, wp_gravity, wp_effects = self._inputs(params, gravity, effect_params)
+        if tapes is not None:
+            wp_params, wp_gravity, wp_effects, per_particle, _ = self.gradient_inputs(params, gravity, effect_params, n, tape_grads)
+            tapes.start(self.generation, (wp_params, wp_gravity, wp_effects, per_particle))
+        else:
+            per_particle = int(params.shape[0] == n and n > 1)
+            wp_params, wp_gravity, wp_effects = self._inputs(params, gravity, effect_params)
         args = (wp_params, per_particle, wp_gravity, wp_effects, dt)
         wp.launch(init_state, dim=n, inputs=[self._wp(x0, wp.vec3), self._wp(v0, wp.vec3), a.x, a.v, a.C, a.F, a.J], device=self.device)
 
@@ -749,15 +793,17 @@ class MPMSimulator:
             tr_out = torch.empty((n_frames + 1, m, 3), dtype=torch.float32, device=dev)
             wp.copy(wp.from_torch(tr_out[0], dtype=wp.vec3), tr_pair[0])
         graphs = self._graphs if self.use_graphs() else None
-        units = self.chunks(n_frames, substeps) if keep_checkpoints else [(f, f * substeps, substeps) for f in range(n_frames)]
         checkpoints: list[ParticleBuffers] = []
-        for frame, first, length in units:
+        for index, (frame, first, length) in enumerate(units):
             if keep_checkpoints:
                 ck = ParticleBuffers(n, self.device)
                 ck.assign(a)
                 checkpoints.append(ck)
             local = first - frame * substeps
-            a, b = self._run_substeps(a, b, grid, args, local, length, status, tr_pair, graphs)
+            if tapes is not None:
+                tapes.forward_chunk(index, a, args, local, length, status, graphs)
+            else:
+                a, b = self._run_substeps(a, b, grid, args, local, length, status, tr_pair, graphs)
             if local + length < substeps:
                 continue
             wp.launch(store_frame, dim=n, inputs=[a.x, a.v, frame + 1, wp_pos, wp_vel], device=self.device)
@@ -773,7 +819,8 @@ class MPMSimulator:
                 # the end-of-frame state may be garbage already: keep the frame's (good) start state
                 err.points = torch.cat([positions[frame], velocities[frame]], 1).cpu().numpy()
                 raise
-        out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt}
+        out = {"positions": positions, "velocities": velocities, "substeps": substeps, "checkpoints": checkpoints, "dt": dt,
+               "tapes": tapes}
         if return_deformation:
             out["F"], out["J"] = Fs, Js
         if tr_out is not None:
