@@ -9,7 +9,9 @@ Prints one JSON line per measurement. Examples::
 
 Particles fill a cube on a lattice of dx/2 (the default particle spacing), dropped onto the ground.
 Fields: material, device, n, substeps, fwd_us_per_substep, fwd_particle_substeps_per_s,
-fwd_bwd_us_per_substep, iteration_over_forward (forward+recompute+backward / forward rollout).
+fwd_bwd_us_per_substep, iteration_over_forward (one gradient step / forward rollout), keep_tapes
+(the setting, ``--keep-tapes``) and tapes_kept (whether the forward's tapes were kept, so the
+backward pass skipped the recompute: ``toolkit.mpm.tapes``).
 """
 
 from __future__ import annotations
@@ -65,12 +67,13 @@ def _time(fn, device: str, repeats: int) -> float:
     return float(np.median(times))
 
 
-def measure(material: str, n: int, device: str, frames: int, substeps: int, repeats: int, backward: bool) -> dict:
+def measure(material: str, n: int, device: str, frames: int, substeps: int, repeats: int, backward: bool,
+            keep_tapes: bool | str = "auto") -> dict:
     import torch
 
     from toolkit.mpm import MPMSimulator, SimConfig
 
-    cfg = SimConfig(substeps=substeps, checkpoint_every=25, margin=0.1)
+    cfg = SimConfig(substeps=substeps, checkpoint_every=25, margin=0.1, keep_tapes=keep_tapes)
     sim = MPMSimulator(material, cfg, device=device)
     x0 = _block(n, cfg.dx / 2).to(sim._torch_device)
     v0 = torch.tensor([0.2, -0.5, 0.1], device=sim._torch_device)
@@ -98,6 +101,8 @@ def measure(material: str, n: int, device: str, frames: int, substeps: int, repe
         both = _time(step, device, repeats)
         rec["fwd_bwd_us_per_substep"] = round(both / steps * 1e6, 3)
         rec["iteration_over_forward"] = round(both / fwd, 3)
+        rec["keep_tapes"] = keep_tapes
+        rec["tapes_kept"] = any(k[0] == "tapes" for k in sim._buffers)
     return rec
 
 
@@ -158,6 +163,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--small", action="store_true", help="CPU-sized run: N = 1e3, 4e3")
     parser.add_argument("--no-backward", action="store_true")
+    parser.add_argument("--keep-tapes", nargs="+", default=["auto"], choices=["auto", "true", "false"],
+                        help="SimConfig.keep_tapes values to time side by side (default auto)")
     parser.add_argument("--memory", action="store_true", help="run the 1e5 x 2600-substep memory probe")
     parser.add_argument("--cold-compile", action="store_true", help="time compiling from an empty cache")
     args = parser.parse_args()
@@ -171,8 +178,10 @@ def main() -> None:
     sizes = args.sizes or ([1e3, 4e3] if args.small else [1e4, 32768, 1e5, 3e5])
     for material in args.materials:
         for n in sizes:
-            rec = measure(material, int(n), args.device, args.frames, args.substeps, args.repeats, not args.no_backward)
-            print(json.dumps(rec), flush=True)
+            for keep in args.keep_tapes:
+                rec = measure(material, int(n), args.device, args.frames, args.substeps, args.repeats, not args.no_backward,
+                              {"auto": "auto", "true": True, "false": False}[keep])
+                print(json.dumps(rec), flush=True)
 
 
 if __name__ == "__main__":
