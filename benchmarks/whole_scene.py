@@ -6,7 +6,7 @@ drawn by the generator's mesh renderer), then runs the whole pipeline on it, ``p
 --config configs/synthetic_<family>.yaml`` (3 fitted cameras, ProJo4D, the config's simulation
 settings), once per stage-0 budget. A budget of N iterations is GIC's 40k schedule with every
 iteration count scaled by N / 40k (:meth:`toolkit.scene.stage0.Stage0Schedule.compressed`), so
-the trade between stage-0 time and accuracy is visible. Each run is a fresh process: its time
+the trade between stage-0 time and accuracy is visible (``projo4d run --stage0-iterations N``). Each run is a fresh process: its time
 includes imports and Warp's kernel compile (from the cache when it is warm; ``cold_cache`` says
 whether the cache was emptied first).
 
@@ -81,7 +81,6 @@ def run_budget(scene: pathlib.Path, out: pathlib.Path, family: str, budget: int,
                extra: list[str]) -> dict:
     """One whole ``projo4d run`` with stage 0 compressed to ``budget`` iterations; its record."""
     from toolkit.benchmark.tables import record_from_run
-    from toolkit.scene.stage0 import Stage0Schedule
 
     run = out / f"stage0_{budget}"
     if run.exists():
@@ -90,9 +89,8 @@ def run_budget(scene: pathlib.Path, out: pathlib.Path, family: str, budget: int,
         import warp as wp
 
         shutil.rmtree(wp.config.kernel_cache_dir or pathlib.Path.home() / ".cache" / "warp", ignore_errors=True)
-    schedule = Stage0Schedule.compressed(budget).to_dict()
     cmd = [sys.executable, "-m", "toolkit.cli", "run", str(scene), "--config", str(ROOT / "configs" / f"synthetic_{FAMILY_CONFIGS[family]}.yaml"),
-           "--out", str(run), "--stage0", json.dumps(schedule), "--device", device, *extra]
+           "--out", str(run), "--stage0-iterations", str(budget), "--device", device, *extra]
     t = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     wall = time.perf_counter() - t
@@ -127,9 +125,9 @@ def main() -> None:
     parser.add_argument("--generate-only", action="store_true")
     parser.add_argument("run_args", nargs="*", help="after --: more `projo4d run` arguments")
     args = parser.parse_args()
-    bad = [b for b in args.budgets if b < 400]
+    bad = [b for b in args.budgets if b < 100]
     if bad:
-        parser.error(f"--budgets must be >= 400 iterations, got {bad}")
+        parser.error(f"--budgets must be >= 100 iterations, got {bad}")
     out = pathlib.Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     scene = generate(out, args.family, args.index, args.seed, args.device, args.size)

@@ -256,3 +256,22 @@ def test_fit_refuses_an_unknown_run_key_and_reads_the_same_file_as_run(fit_input
     cfg = yaml.safe_load(find_config("synthetic_elastic").read_text())
     check_run_section(cfg["run"], "synthetic_elastic.yaml")
     assert settings_from_sections(cfg, "synthetic_elastic.yaml")["stage0"] == cfg["run"]["stage0"]
+
+
+def test_stage0_iterations_compress_gics_schedule(tmp_path):
+    """`projo4d run --stage0-iterations N` is GIC's schedule with every iteration count scaled to N
+    (Stage0Schedule.compressed), the same mapping `projo4d benchmark --stage0-iterations` writes;
+    it refuses to be combined with --stage0 and counts below 100, naming the flag."""
+    from toolkit.benchmark.plan import scaled_stage0
+    from toolkit.run_validation import SettingsError
+    from toolkit.scene.stage0 import Stage0Schedule
+
+    s = _settings(str(tmp_path / "scene"), "--stage0-iterations", "5000")
+    assert s.stage0 == scaled_stage0(5000)
+    schedule = Stage0Schedule.from_dict({k: v for k, v in s.stage0.items() if k != "preset"})
+    assert schedule == Stage0Schedule.compressed(5000)
+    assert (schedule.iterations, schedule.warmup, schedule.densify_until, schedule.densify_interval) == (5000, 375, 1875, 12)
+    with pytest.raises(SettingsError, match="--stage0-iterations.*not both"):
+        _settings(str(tmp_path / "scene"), "--stage0-iterations", "5000", "--stage0", "tiny")
+    with pytest.raises(SettingsError, match="--stage0-iterations.*>= 100"):
+        _settings(str(tmp_path / "scene"), "--stage0-iterations", "50")

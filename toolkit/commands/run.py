@@ -64,6 +64,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help=f"integer image downscale factor (default: {d['downscale']})")
     parser.add_argument("--stage0", help=f"'full' (GIC, 40k iterations), 'tiny' or JSON of Stage0Schedule fields "
                                          f"(default: {d['stage0']})")
+    parser.add_argument("--stage0-iterations", type=int, metavar="N",
+                        help="GIC's stage-0 schedule with every iteration count scaled to N iterations in all "
+                             "(Stage0Schedule.compressed; instead of --stage0; default: the --stage0 schedule)")
     parser.add_argument("--geometry", choices=["stage0", "oracle"],
                         help=f"where the particles come from: stage 0 (the method) or the ground truth "
                              f"(default: {d['geometry']})")
@@ -118,8 +121,17 @@ def settings_from_args(args: argparse.Namespace, command: str = "run"):
     }
     if args.cameras:
         over["cameras"] = _cameras_arg(args.cameras)
+    if args.stage0 and getattr(args, "stage0_iterations", None):
+        raise SettingsError("--stage0-iterations", args.stage0_iterations, "give --stage0 or --stage0-iterations, not both")
     if args.stage0:
         over["stage0"] = _stage0_arg(args.stage0)
+    elif getattr(args, "stage0_iterations", None) is not None:
+        from toolkit.benchmark.plan import BenchmarkError, scaled_stage0
+
+        try:
+            over["stage0"] = scaled_stage0(args.stage0_iterations)
+        except BenchmarkError as err:
+            raise SettingsError("--stage0-iterations", args.stage0_iterations, "an integer >= 100") from err
     if args.param:
         over["initial_params"] = {**(base.get("initial_params") or {}), **dict(args.param)}
     if getattr(args, "resume", False):

@@ -209,13 +209,15 @@ class Stage0Schedule(DictSettings):
         """GIC's full schedule with every iteration count scaled by ``iterations / 40_000``
         (warm-up, densification window and interval, opacity resets, SH steps, learning-rate
         decay); rates, thresholds and loss weights unchanged. ``compressed(40_000) == full()``.
-        Used by ``benchmarks/whole_scene.py`` to trade stage-0 time for geometry (issue #16).
+        ``projo4d run --stage0-iterations N`` and ``projo4d benchmark --stage0-iterations N`` use it
+        (a cheaper, less converged stage 0: ``benchmarks/whole_scene.py`` measures the trade, issue #16).
+        Counts round to the nearest iteration, at least 1.
 
         Raises:
-            ValueError: ``iterations`` below 400 (a densification interval under one iteration).
+            ValueError: ``iterations`` is not an integer >= 100.
         """
-        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 400:
-            raise ValueError(f"iterations must be an integer >= 400, got {iterations!r}")
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 100:
+            raise ValueError(f"iterations must be an integer >= 100, got {iterations!r}")
         base = cls.full()
         f = iterations / base.iterations
 
@@ -228,8 +230,7 @@ class Stage0Schedule(DictSettings):
                       "densify_from": scaled(base.densify_from), "densify_until": scaled(base.densify_until),
                       "densify_interval": scaled(base.densify_interval),
                       "opacity_reset_interval": scaled(base.opacity_reset_interval),
-                      "sh_increase_interval": scaled(base.sh_increase_interval),
-                      "log_every": min(base.log_every, scaled(base.log_every))})
+                      "sh_increase_interval": scaled(base.sh_increase_interval)})
 
     @classmethod
     def defaults(cls) -> "Stage0Schedule":
