@@ -29,6 +29,11 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
     assert next(r for r in summary["parameters"] if r["parameter"] == "E")["truth"] == pytest.approx(3e4)
     for key in ("cd", "emd", "psnr", "ssim"):
         assert math.isfinite(summary["future"][key]) and math.isfinite(summary["train"][key])
+    # the grid check: the estimate on a grid of half the spacing, over the 4 training frames after the first
+    grid = summary["grid_check"]
+    assert (grid["dx"], grid["fine_dx"], grid["frames"]) == (0.04, 0.02, 4)
+    assert grid["shift_m"] > 0 and grid["residual_m"] > 0 and grid["converged"] == (grid["shift_m"] <= grid["residual_m"])
+    assert "grid check: halving dx (0.04 -> 0.02 m)" in printed and "grid_check_s" in summary["timings_s"]
     ev = json.loads((out / "evaluation" / "evaluation.json").read_text())
     assert len(ev["geometry"]["cd_per_frame"]) == 6 and ev["n_train"] == 5
     assert set(ev["images"]) == {"all_cameras", "fitted_cameras", "held_out_cameras"}

@@ -420,14 +420,20 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     module = module.to(_device(s.device))
     evaluation = evaluate_module(module, run / "evaluation")
     timings["evaluation_s"] = time.perf_counter() - t
+    from toolkit.physics.grid_check import grid_convergence
+
+    t = time.perf_counter()
+    grid = grid_convergence(module)  # does the estimate depend on the grid? (issue #20)
+    timings["grid_check_s"] = time.perf_counter() - t
     renders = np.load(run / "evaluation" / "renders.npz")["renders"].transpose(1, 0, 2, 3, 4)
     inp = module.input
     cams = s.report_cameras or (inp.train_cameras[:2] + inp.held_out_cameras[:2])
     files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams,
                          uncertainty=module.uncertainty_result)
-    timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"]
+    timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
     summary = _summary(module, evaluation, timings, files)
+    summary["grid_check"] = grid
     write_json(run / "summary.json", summary)
     return summary
 
@@ -483,5 +489,9 @@ def format_summary(summary: dict) -> str:
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "
                      f"SSIM {fut['ssim'] or float('nan'):.3f}")
+    if summary.get("grid_check"):
+        from toolkit.physics.grid_check import format_grid_check
+
+        lines.append(format_grid_check(summary["grid_check"]))
     lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
     return "\n".join(lines)

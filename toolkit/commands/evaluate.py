@@ -79,7 +79,7 @@ def evaluate_run(run_dir: str | Path, render: bool = True, report: bool = True, 
     timings = {k: float(v) for k, v in (old.get("timings_s") or {}).items() if isinstance(v, (int, float))}
     timings["evaluation_s"] = elapsed
     summary = _summary(module, evaluation, timings, files or [Path(f) for f in old.get("report", [])])
-    for key in ("benchmark",):
+    for key in ("benchmark", "grid_check"):  # the grid check belongs to the fit, not to the evaluation
         if key in old:
             summary[key] = old[key]
     sp.write_text(json.dumps(summary, indent=2))
