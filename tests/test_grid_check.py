@@ -10,7 +10,7 @@ import torch
 
 from tests.mpm_scenes import block
 from toolkit.mpm import MPMSimulator, SimConfig
-from toolkit.physics.grid_check import format_grid_check, grid_shift, subdivide
+from toolkit.physics.grid_check import GRID_NOTE, annotate_grid, format_grid_check, grid_shift, subdivide
 
 
 def test_subdivide_keeps_the_centre_on_the_half_pitch_lattice():
@@ -55,3 +55,13 @@ def test_an_unresolved_impact_moves_with_the_grid():
     assert rec["shift_per_frame_m"][0] < 1e-6 and max(rec["shift_per_frame_m"]) > rec["shift_m"]
     line = format_grid_check({**rec, "residual_m": 1e-3, "ratio": rec["shift_m"] / 1e-3, "converged": False})
     assert "fit again with --sim '{\"dx\": 0.02}'" in line
+
+
+def test_a_failed_check_marks_the_material_parameters_only():
+    rows = [{"parameter": "E", "note": ""}, {"parameter": "nu", "note": "weakly determined"}, {"parameter": "v0_x", "note": ""}]
+    annotate_grid(rows, {"converged": True}, ["E", "nu"])
+    assert [r["note"] for r in rows] == ["", "weakly determined", ""]
+    annotate_grid(rows, {"converged": False}, ["E", "nu"])
+    assert [r["note"] for r in rows] == [GRID_NOTE, f"weakly determined; {GRID_NOTE}", ""]
+    annotate_grid(rows, {"skipped": "GridTooLargeError: ..."}, ["E"])  # no verdict: nothing added
+    assert rows[0]["note"] == GRID_NOTE

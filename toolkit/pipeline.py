@@ -434,6 +434,9 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
     summary = _summary(module, evaluation, timings, files)
     summary["grid_check"] = grid
+    from toolkit.physics.grid_check import annotate_grid
+
+    annotate_grid(summary["parameters"], grid, module.estimate()["params"])
     write_json(run / "summary.json", summary)
     return summary
 

@@ -39,7 +39,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.mpm import MPMSimulator
     from toolkit.physics.module import InversePhysicsModule
 
-__all__ = ["subdivide", "grid_shift", "grid_convergence", "format_grid_check"]
+__all__ = ["subdivide", "grid_shift", "grid_convergence", "format_grid_check", "annotate_grid", "GRID_NOTE"]
+
+#: added to the note of each material parameter when the grid check fails
+GRID_NOTE = "grid-dependent: a grid of half the spacing moves the fit more than its misfit (see the grid check)"
 
 log = logging.getLogger(__name__)
 
@@ -150,3 +153,15 @@ def format_grid_check(rec: Optional[dict]) -> str:
     return (f"grid check: {shift}, {misfit}: the estimates depend on the grid more than the fit's misfit; "
             f"fit again with --sim '{{\"dx\": {rec['fine_dx']:g}}}'")
 
+
+
+def annotate_grid(rows: list[dict], rec: Optional[dict], material_params) -> list[dict]:
+    """Append :data:`GRID_NOTE` to the note of the summary rows of ``material_params`` when the
+    grid check ``rec`` found the estimate grid-dependent (``converged`` False). In place; returned."""
+    if not rec or rec.get("converged") is not False:
+        return rows
+    names = set(material_params)
+    for row in rows:
+        if row["parameter"] in names:
+            row["note"] = "; ".join(n for n in (row.get("note") or "", GRID_NOTE) if n)
+    return rows
