@@ -18,7 +18,9 @@ One JSON line per budget::
 
 ``init_cd`` is the Chamfer distance between the fitted and true particles at frame 0 (stage 0's
 geometry); ``cd``/``emd`` are over the future frames (DESIGN §7); ``errors`` as in the strategy
-comparison (absolute errors; log10 for log parameters, the v0 vector's norm in m/s).
+comparison (absolute errors; log10 for log parameters, the v0 vector's norm in m/s);
+``grid_check`` the run's grid check (``toolkit.physics.grid_check``: how far a grid of half the
+spacing moves the fit, against the fit's residual).
 
 Usage::
 
@@ -107,6 +109,8 @@ def run_budget(scene: pathlib.Path, out: pathlib.Path, family: str, budget: int,
     summary = json.loads((run / "summary.json").read_text())
     line["estimates"] = {r["parameter"]: {k: r.get(k) for k in ("estimate", "truth", "label")}
                          for r in summary.get("parameters", []) if isinstance(r, dict)}
+    grid = summary.get("grid_check") or {}
+    line["grid_check"] = {k: grid.get(k) for k in ("dx", "fine_dx", "shift_m", "residual_m", "converged", "skipped") if k in grid}
     return line
 
 
