@@ -88,7 +88,7 @@ def main() -> None:
         pos = out.positions.cpu().numpy()
         per_frame = [chamfer(pos[f], truth.particles[f]) for f in range(args.frames)]
         row = {"benchmark": "grid_bias", "param": args.param, "offset": k, "value": value, "fit_dx": args.fit_dx,
-               "particles": int(len(particles)), "substeps": int(out.substeps), "cd_mean_m": float(np.mean(per_frame)),
+               "particles": len(particles), "substeps": int(out.substeps), "cd_mean_m": float(np.mean(per_frame)),
                "cd_per_frame_mm": [round(1e3 * c, 3) for c in per_frame], "seconds": round(time.perf_counter() - t, 1)}
         rows.append(row)
         print(json.dumps(row), flush=True)

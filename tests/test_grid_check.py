@@ -10,7 +10,13 @@ import torch
 
 from tests.mpm_scenes import block
 from toolkit.mpm import MPMSimulator, SimConfig
-from toolkit.physics.grid_check import GRID_NOTE, annotate_grid, format_grid_check, grid_shift, subdivide
+from toolkit.physics.grid_check import (
+    GRID_NOTE,
+    annotate_grid,
+    format_grid_check,
+    grid_shift,
+    subdivide,
+)
 
 
 def test_subdivide_keeps_the_centre_on_the_half_pitch_lattice():

@@ -318,7 +318,7 @@ def test_kept_tapes_follow_the_memory_limit():
     _grads_and_states(sim, x0, w, "neo_hookean", n_frames=2)
     chunks = sim.chunks(2, sim.last_plan.substeps)
     need = tape_bytes(sim.grid.dims, x0.shape[0], [length for _, _, length in chunks])
-    kept = [v for k, v in sim._buffers.items() if k[0] == "tapes"][0]
+    kept = next(v for k, v in sim._buffers.items() if k[0] == "tapes")
     allocated = sum(p.grads.base.capacity + p.grid_values.base.capacity for p in kept.pools.values())
     allocated += sum(len(p.grids) * int(np.prod(sim.grid.dims)) * 12 + sum(a.capacity for st in p.states for a in st.arrays())
                      for p in kept.pools.values())
