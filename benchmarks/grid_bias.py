@@ -50,7 +50,9 @@ def main() -> None:
     parser.add_argument("--fit-dx", type=float, default=0.02, help="the fitting grid spacing, metres (default 0.02)")
     parser.add_argument("--param", default="E", help="the swept parameter (default E)")
     parser.add_argument("--decades", type=float, nargs="+", default=[-1.5, -1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5],
-                        help="offsets from the truth, decades (log parameters) or multiples of 0.1 (others)")
+                        help="offsets from the truth: decades for log parameters, multiples of --linear-step for others")
+    parser.add_argument("--linear-step", type=float, default=0.1,
+                        help="unit of an offset for a parameter that is not log-scaled (e.g. 5 for a friction angle in degrees)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
 
@@ -79,7 +81,7 @@ def main() -> None:
     true_value = float(spec.params[args.param])
     rows = []
     for k in args.decades:
-        value = true_value * 10.0**k if log_axis else true_value + 0.1 * k
+        value = true_value * 10.0**k if log_axis else true_value + args.linear_step * k
         params = material.complete({**spec.params, args.param: value})
         sim = MPMSimulator(material, dataclasses.replace(config), device=args.device)
         t = time.perf_counter()
@@ -95,7 +97,7 @@ def main() -> None:
     best = min(rows, key=lambda r: r["cd_mean_m"])
     print(json.dumps({"benchmark": "grid_bias", "event": "summary", "param": args.param, "truth": true_value, "fit_dx": args.fit_dx,
                       "truth_dx": spec.dx, "best_value": best["value"], "best_offset": best["offset"],
-                      "offset_unit": "decades" if log_axis else "x0.1", "cd_at_truth_m": next(
+                      "offset_unit": "decades" if log_axis else f"x{args.linear_step:g}", "cd_at_truth_m": next(
                           (r["cd_mean_m"] for r in rows if r["offset"] == 0.0), math.nan), "cd_best_m": best["cd_mean_m"]}),
           flush=True)
 
