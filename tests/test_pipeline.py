@@ -37,7 +37,7 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
     ev = json.loads((out / "evaluation" / "evaluation.json").read_text())
     assert len(ev["geometry"]["cd_per_frame"]) == 6 and ev["n_train"] == 5
     assert set(ev["images"]) == {"all_cameras", "fitted_cameras", "held_out_cameras"}
-    for name in ("trajectories.png", "per_frame.png", "prediction_vs_truth_future.png"):
+    for name in ("trajectories.png", "per_frame.png", "prediction_vs_truth_future.png", "grid_check.png"):
         assert (out / "report" / name).stat().st_size > 1000
     est = json.loads((out / "physics" / "estimate.json").read_text())
     assert est["iterations"] == 8

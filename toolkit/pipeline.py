@@ -430,7 +430,7 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     cams = s.report_cameras or (inp.train_cameras[:2] + inp.held_out_cameras[:2])
     files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams,
-                         uncertainty=module.uncertainty_result)
+                         uncertainty=module.uncertainty_result, grid_check=grid)
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
     summary = _summary(module, evaluation, timings, files)
     summary["grid_check"] = grid

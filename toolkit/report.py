@@ -23,7 +23,7 @@ from toolkit.atomic import write_with
 from toolkit.plotting import pyplot, save_figure
 
 __all__ = ["plot_trajectories", "plot_per_frame", "comparison_video", "write_report", "plot_evaluation_trajectories",
-           "compressed_axis", "write_uncertainty_table"]
+           "compressed_axis", "write_uncertainty_table", "plot_grid_check"]
 
 _LOG_PARAMS = {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"}
 
@@ -104,6 +104,27 @@ def plot_per_frame(evaluation: dict, path: str | Path) -> Optional[Path]:
     return save_figure(fig, path)
 
 
+def plot_grid_check(rec: dict, path: str | Path) -> Optional[Path]:
+    """The grid check (:mod:`toolkit.physics.grid_check`): per training frame, how far the
+    estimate moves on a grid of half the spacing (mm), against the fit's mean residual."""
+    shifts = rec.get("shift_per_frame_m")
+    if not shifts:
+        return None
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(4.6, 2.9))
+    ax.plot(range(len(shifts)), [1e3 * v for v in shifts], marker="o", ms=3,
+            label=f"shift, dx {rec['dx']:g} -> {rec['fine_dx']:g} m")
+    if rec.get("residual_m") is not None:
+        ax.axhline(1e3 * rec["residual_m"], color="C3", ls="--", lw=1, label="fit's mean residual")
+    verdict = {True: "the grid resolves the body", False: "grid-dependent: fit at the finer dx"}.get(rec.get("converged"), "")
+    ax.set_title(f"grid check{': ' + verdict if verdict else ''}", fontsize=9)
+    ax.set_xlabel("training frame", fontsize=8)
+    ax.set_ylabel("mm", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7)
+    return save_figure(fig, path)
+
+
 def caption_below(img: np.ndarray, text: str, band: int = 14) -> np.ndarray:
     """``img`` (H, W, 3) uint8 with a white band of ``band`` px *below* it holding ``text`` in black:
     the caption never covers the picture, which keeps its own resolution."""
@@ -160,11 +181,14 @@ def comparison_video(gt: np.ndarray, pred: np.ndarray, n_train: int, path: str |
 
 def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Sequence[dict], evaluation: dict,
                  truth: Optional[dict], gt_images: Optional[np.ndarray], pred_images: Optional[np.ndarray],
-                 cameras: Sequence[int], uncertainty: Optional[dict] = None) -> list[Path]:
+                 cameras: Sequence[int], uncertainty: Optional[dict] = None,
+                 grid_check: Optional[dict] = None) -> list[Path]:
     """All figures and the video into ``run_dir/report``; returns the files.
 
     ``uncertainty`` (an :meth:`toolkit.physics.uncertainty.Uncertainty.to_dict` result) adds
     ``uncertainty.md``: each parameter's estimate, interval and identifiability label.
+    ``grid_check`` (a :func:`toolkit.physics.grid_check.grid_convergence` record) adds
+    ``grid_check.png``.
     """
     report = Path(run_dir) / "report"
     report.mkdir(parents=True, exist_ok=True)
@@ -174,6 +198,10 @@ def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Seque
     p = plot_per_frame(evaluation, report / "per_frame.png")
     if p:
         files.append(p)
+    if grid_check:
+        p = plot_grid_check(grid_check, report / "grid_check.png")
+        if p:
+            files.append(p)
     if gt_images is not None and pred_images is not None:
         files += comparison_video(gt_images[list(cameras)], pred_images[list(cameras)], evaluation["n_train"],
                                   report / "prediction_vs_truth.mp4")
