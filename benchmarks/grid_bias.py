@@ -33,13 +33,6 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 
-def chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """Symmetric mean nearest-neighbour distance between point sets (metres)."""
-    from scipy.spatial import cKDTree
-
-    return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--family", default="neo_hookean")
@@ -55,16 +48,28 @@ def main() -> None:
                         help="unit of an offset for a parameter that is not log-scaled (e.g. 5 for a friction angle in degrees)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
+    if not args.fit_dx > 0:
+        parser.error(f"--fit-dx must be a positive grid spacing in metres, got {args.fit_dx}")
+    if args.frames < 2:
+        parser.error(f"--frames must be >= 2 (the first frame is the start), got {args.frames}")
+    if not args.linear_step > 0:
+        parser.error(f"--linear-step must be > 0, got {args.linear_step}")
 
     import torch
 
-    from materials import get_material
+    from materials import MaterialError, get_material
+    from toolkit.metrics import mean_nearest_distance
     from toolkit.mpm import MPMSimulator, SimConfig
     from toolkit.synthetic.filling import fill_mesh
     from toolkit.synthetic.suite import sample_scene_spec
     from toolkit.synthetic.truth import GROUND_HEIGHT, build_object, simulate_truth
 
     spec = sample_scene_spec(args.family, args.index, args.seed, args.size, args.device, n_frames=args.frames)
+    material = get_material(spec.material, **spec.material_options)
+    try:
+        p = material.param(args.param)
+    except MaterialError as err:
+        parser.error(f"--param: {err}")
     mesh = build_object(spec)
     t = time.perf_counter()
     truth = simulate_truth(spec, mesh)
@@ -72,11 +77,9 @@ def main() -> None:
                       "dx": spec.dx, "particles": int(truth.particles.shape[1]), "substeps": truth.substeps,
                       "seconds": round(time.perf_counter() - t, 1)}), flush=True)
     particles, volume = fill_mesh(mesh, args.fit_dx / 2, device=args.device)
-    material = get_material(spec.material, **spec.material_options)
     config = SimConfig(dx=args.fit_dx, frame_dt=1.0 / spec.fps, density=spec.density, particle_volume=volume,
                        gravity=tuple(spec.gravity), ground_height=GROUND_HEIGHT, boundary=spec.boundary,
                        auto_dt_halving=True)
-    p = material.param(args.param)
     log_axis = p.transform == "log10"
     true_value = float(spec.params[args.param])
     rows = []
@@ -88,7 +91,7 @@ def main() -> None:
         out = sim.rollout(torch.as_tensor(particles, dtype=torch.float32), v0=np.asarray(spec.v0, np.float32),
                           params=material.pack(params), n_frames=args.frames - 1)
         pos = out.positions.cpu().numpy()
-        per_frame = [chamfer(pos[f], truth.particles[f]) for f in range(args.frames)]
+        per_frame = [mean_nearest_distance(pos[f], truth.particles[f]) for f in range(args.frames)]
         row = {"benchmark": "grid_bias", "param": args.param, "offset": k, "value": value, "fit_dx": args.fit_dx,
                "particles": len(particles), "substeps": int(out.substeps), "cd_mean_m": float(np.mean(per_frame)),
                "cd_per_frame_mm": [round(1e3 * c, 3) for c in per_frame], "seconds": round(time.perf_counter() - t, 1)}

@@ -50,6 +50,8 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from toolkit.atomic import write_text  # noqa: E402
+
 FAMILY_CONFIGS = {"neo_hookean": "elastic", "newtonian": "newtonian", "non_newtonian": "non_newtonian",
                   "plasticine": "plasticine", "sand": "sand"}
 
@@ -96,7 +98,7 @@ def run_budget(scene: pathlib.Path, out: pathlib.Path, family: str, budget: int,
     t = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, check=False)
     wall = time.perf_counter() - t
-    (out / f"stage0_{budget}.log").write_text(proc.stdout)
+    write_text(out / f"stage0_{budget}.log", proc.stdout)
     rec = record_from_run(run, {"scene": "whole_scene", "strategy": "progressive", "cameras": 3}) if proc.returncode == 0 else None
     line = {"benchmark": "whole_scene", "device_name": device_name(device), "family": family, "stage0_iterations": budget,
             "returncode": proc.returncode, "wall_s": round(wall, 1), "cold_cache": cold_cache}
@@ -140,6 +142,8 @@ def main() -> None:
     for budget in args.budgets:
         line = run_budget(scene, out, args.family, budget, args.device, args.cold_cache, args.run_args)
         print(json.dumps(line), flush=True)
+        # one budget per GPU means several processes add to this file: each adds one line in one
+        # O_APPEND write (whole lines, none lost), which a read-and-replace could not promise
         with open(out / "whole_scene.jsonl", "a") as f:
             f.write(json.dumps(line) + "\n")
 

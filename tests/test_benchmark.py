@@ -411,6 +411,7 @@ def test_changed_settings_are_refused_unless_redone(bench, capsys):
 def test_evaluate_command_re_evaluates_a_run_folder(bench, capsys):
     run = bench["out"] / "runs" / "neo_hookean" / "001" / "cams3" / "sequential"
     before = json.loads((run / "evaluation" / "evaluation.json").read_text())
+    grid_before = json.loads((run / "summary.json").read_text())["grid_check"]
     import shutil
 
     shutil.rmtree(run / "evaluation")
@@ -421,6 +422,9 @@ def test_evaluate_command_re_evaluates_a_run_folder(bench, capsys):
     ev = json.loads((run / "evaluation" / "evaluation.json").read_text())
     assert "images" not in ev and ev["geometry"]["cd_future"] == pytest.approx(before["geometry"]["cd_future"], rel=1e-5)
     assert (run / "report" / "per_frame.png").is_file() and (run / "report" / "evaluation_trajectories.png").is_file()
+    # the fit's grid check is kept (not re-run) and drawn again
+    assert (run / "report" / "grid_check.png").is_file()
+    assert json.loads((run / "summary.json").read_text())["grid_check"] == grid_before
     assert main(["evaluate", str(run), "--json", "--device", "cpu"]) == 0
     ev = json.loads(capsys.readouterr().out)
     assert ev["images"]["held_out_cameras"]["psnr_future"] == pytest.approx(before["images"]["held_out_cameras"]["psnr_future"],

@@ -273,3 +273,19 @@ def test_parameter_errors():
     assert {"E", "mu", "kappa", "yield_stress", "plastic_viscosity"} <= LOG_PARAMS
     with pytest.raises(ValueError, match="log-scale"):
         parameter_errors({"E": -1.0}, {"E": 1e5})
+
+
+def test_mean_nearest_distance_of_a_shifted_lattice_is_the_shift():
+    """A lattice of pitch 1 cm against itself moved 3 mm along x: every nearest neighbour is the
+    moved twin, so both mean distances are 3 mm; with extra far points on one side only that
+    side's mean grows."""
+    from toolkit.metrics import mean_nearest_distance
+
+    g = np.stack(np.meshgrid(*[np.arange(5) * 0.01] * 3, indexing="ij"), -1).reshape(-1, 3)
+    moved = g + np.array([0.003, 0.0, 0.0])
+    assert mean_nearest_distance(g, moved) == pytest.approx(0.003, rel=1e-9)
+    far = np.vstack([moved, [[1.0, 0.0, 0.0]]])
+    expected = 0.5 * (0.003 + (0.003 * len(g) + (1.0 - 0.04)) / (len(g) + 1))  # its nearest: (0.04, 0, 0)
+    assert mean_nearest_distance(g, far) == pytest.approx(expected, rel=1e-9)
+    with pytest.raises(ValueError, match="b is empty"):
+        mean_nearest_distance(g, np.zeros((0, 3)))

@@ -420,7 +420,7 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     module = module.to(_device(s.device))
     evaluation = evaluate_module(module, run / "evaluation")
     timings["evaluation_s"] = time.perf_counter() - t
-    from toolkit.physics.grid_check import grid_convergence
+    from toolkit.physics.grid_check import annotate_grid, grid_convergence
 
     t = time.perf_counter()
     grid = grid_convergence(module)  # does the estimate depend on the grid? (issue #20)
@@ -434,8 +434,6 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
     summary = _summary(module, evaluation, timings, files)
     summary["grid_check"] = grid
-    from toolkit.physics.grid_check import annotate_grid
-
     annotate_grid(summary["parameters"], grid, module.estimate()["params"])
     write_json(run / "summary.json", summary)
     return summary

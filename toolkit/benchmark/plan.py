@@ -288,20 +288,19 @@ def strategy_options(entry: StrategyEntry, iterations: dict, material: str) -> d
 
 
 def scaled_stage0(iterations: int) -> dict:
-    """GIC's full stage-0 schedule shortened to ``iterations`` as a ``RunSettings.stage0`` mapping:
-    the fields :meth:`toolkit.scene.stage0.Stage0Schedule.compressed` scales (warm-up,
-    learning-rate decay lengths, densification window and interval, opacity resets, SH increases),
-    so the same phases happen in the same order (a cheaper, less converged stage 0; state it when
-    reporting)."""
-    from toolkit.scene.stage0 import Stage0Schedule
+    """GIC's full stage-0 schedule shortened to ``iterations``, as a ``RunSettings.stage0``
+    mapping (:func:`toolkit.scene.stage0.compressed_settings`): the same phases in the same order,
+    a cheaper, less converged stage 0 (state it when reporting).
 
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 100:
-        raise BenchmarkError(f"stage-0 iterations must be an integer >= 100, got {iterations!r}")
-    schedule = Stage0Schedule.compressed(iterations).to_dict()
-    return {"preset": "full", "iterations": int(iterations),
-            **{key: schedule[key] for key in ("warmup", "position_lr_max_steps", "deform_lr_max_steps", "densify_from",
-                                              "densify_until", "densify_interval", "opacity_reset_interval",
-                                              "sh_increase_interval")}}
+    Raises:
+        BenchmarkError: ``iterations`` is not an integer >= 100.
+    """
+    from toolkit.scene.stage0 import compressed_settings
+
+    try:
+        return compressed_settings(iterations)
+    except ValueError as err:
+        raise BenchmarkError(f"stage-0 {err}") from None
 
 
 # ------------------------------------------------------------------------------------ cameras

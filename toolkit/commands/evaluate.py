@@ -61,6 +61,11 @@ def evaluate_run(run_dir: str | Path, render: bool = True, report: bool = True, 
         if stale.is_file():
             stale.unlink()  # renders of an earlier evaluation would not match this one
     elapsed = time.perf_counter() - t
+    old = {}
+    sp = run / "summary.json"
+    if sp.is_file():
+        old = json.loads(sp.read_text())
+    grid = old.get("grid_check")  # the grid check belongs to the fit, not to the evaluation: kept
     files = []
     if report:
         from toolkit.report import write_report
@@ -71,18 +76,19 @@ def evaluate_run(run_dir: str | Path, render: bool = True, report: bool = True, 
         if render:
             renders = np.load(out_dir / "renders.npz")["renders"].transpose(1, 0, 2, 3, 4)
         files = write_report(run, module.history, module.curriculum.describe(module.material.registry_name or None),
-                             evaluation, inp.ground_truth, inp.images.numpy() if render else None, renders, cams)
-    old = {}
-    sp = run / "summary.json"
-    if sp.is_file():
-        old = json.loads(sp.read_text())
+                             evaluation, inp.ground_truth, inp.images.numpy() if render else None, renders, cams,
+                             grid_check=grid)
     timings = {k: float(v) for k, v in (old.get("timings_s") or {}).items() if isinstance(v, (int, float))}
     timings["evaluation_s"] = elapsed
     summary = _summary(module, evaluation, timings, files or [Path(f) for f in old.get("report", [])])
-    for key in ("benchmark", "grid_check"):  # the grid check belongs to the fit, not to the evaluation
+    for key in ("benchmark", "grid_check"):
         if key in old:
             summary[key] = old[key]
-    sp.write_text(json.dumps(summary, indent=2))
+    from toolkit.atomic import write_json
+    from toolkit.physics.grid_check import annotate_grid
+
+    annotate_grid(summary["parameters"], grid, module.estimate()["params"])
+    write_json(sp, summary)
     return evaluation
 
 

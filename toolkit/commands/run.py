@@ -126,12 +126,12 @@ def settings_from_args(args: argparse.Namespace, command: str = "run"):
     if args.stage0:
         over["stage0"] = _stage0_arg(args.stage0)
     elif getattr(args, "stage0_iterations", None) is not None:
-        from toolkit.benchmark.plan import BenchmarkError, scaled_stage0
+        from toolkit.scene.stage0 import compressed_settings
 
         try:
-            over["stage0"] = scaled_stage0(args.stage0_iterations)
-        except BenchmarkError as err:
-            raise SettingsError("--stage0-iterations", args.stage0_iterations, "an integer >= 100") from err
+            over["stage0"] = compressed_settings(args.stage0_iterations)
+        except ValueError:
+            raise SettingsError("--stage0-iterations", args.stage0_iterations, "an integer >= 100") from None
     if args.param:
         over["initial_params"] = {**(base.get("initial_params") or {}), **dict(args.param)}
     if getattr(args, "resume", False):

@@ -15,6 +15,7 @@ from toolkit.metrics.geometry import (
     chamfer_sequence,
     earth_movers_distance,
     emd_per_frame,
+    mean_nearest_distance,
     emd_sequence,
     split_mean,
 )
@@ -37,6 +38,7 @@ __all__ = [
     "chamfer_sequence",
     "earth_movers_distance",
     "emd_per_frame",
+    "mean_nearest_distance",
     "emd_sequence",
     "gaussian_window",
     "image_metrics",

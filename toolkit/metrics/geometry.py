@@ -39,6 +39,7 @@ __all__ = [
     "earth_movers_distance",
     "emd_sequence",
     "emd_per_frame",
+    "mean_nearest_distance",
     "chamfer_loss",
     "split_mean",
 ]
@@ -81,6 +82,14 @@ def _chamfer_np(a: np.ndarray, b: np.ndarray) -> float:
     d_ab, _ = cKDTree(b).query(a, k=1)
     d_ba, _ = cKDTree(a).query(b, k=1)
     return float(np.mean(d_ab**2) + np.mean(d_ba**2))
+
+
+def mean_nearest_distance(a, b) -> float:
+    """Half the sum of the two mean nearest-neighbour distances between point sets ``a`` (N, 3)
+    and ``b`` (M, 3): the symmetric Chamfer distance in the clouds' own (unsquared) units, every
+    point used (unlike :func:`chamfer_distance`, which squares and subsamples as ProJo4D reports)."""
+    a, b = _points(a, "a"), _points(b, "b")
+    return 0.5 * float(cKDTree(b).query(a, k=1)[0].mean() + cKDTree(a).query(b, k=1)[0].mean())
 
 
 def chamfer_distance(

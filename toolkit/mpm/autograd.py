@@ -53,7 +53,7 @@ class SimulateFunction(torch.autograd.Function):
         dt = sim.config.frame_dt / substeps
         need = ctx.needs_input_grad[5:8]
         kept = None
-        if ctx.tapes is not None and ctx.tapes[1] == sim.generation == ctx.tapes[0].generation:
+        if ctx.tapes is not None and ctx.tapes[1] == sim.generation:
             kept = ctx.tapes[0]  # no forward pass since ours: its tapes are intact
         ctx.tapes = None
 

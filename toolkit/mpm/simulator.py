@@ -131,6 +131,17 @@ class MPMSimulator:
         return out
 
     @contextlib.contextmanager
+    def substep_plan_restored(self):
+        """Rollouts inside leave :attr:`substeps_floor` and :attr:`halvings` as they were: a dt
+        halving a probe needed (a coarse-search candidate, the grid check's rollout) is not kept
+        for the fit's later rollouts."""
+        floor, halvings = self.substeps_floor, self.halvings
+        try:
+            yield
+        finally:
+            self.substeps_floor, self.halvings = floor, halvings
+
+    @contextlib.contextmanager
     def stream(self):
         """Context for the simulator's Warp work on CUDA (no-op on CPU).
 

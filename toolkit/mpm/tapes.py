@@ -60,11 +60,9 @@ class KeptTapes:
         False never, ``"auto"`` when their bytes are at most half the memory limit
         (``SimConfig.memory_limit``, default half the free device memory or available RAM;
         ``held``: bytes of kept tapes already allocated, which count as free)."""
-        mode = sim.config.keep_tapes
-        if mode is not True and mode != "auto":
-            return False
-        if mode is True:
-            return True
+        mode = sim.config.keep_tapes  # validated: True, False or "auto"
+        if mode != "auto":
+            return bool(mode)
         need = tape_bytes(sim.grid.dims, n, [length for _, _, length in chunks])
         limit = sim.config.memory_limit
         if limit is None:

@@ -142,7 +142,6 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     start = {n: float(base_phys[index[n]]) for n in names}
     to_coord = {n: (lambda v, a=axes[n]: math.log10(v) if a[0] else v) for n in names}
     sim = module.simulator
-    floor, halvings = sim.substeps_floor, sim.halvings
     with torch.no_grad():
         x0 = (module.particles0 + module.particle_offset).detach()
         v0, gravity, effects = module.v0.detach(), module.gravity.detach(), module.effect_params.detach()
@@ -159,14 +158,13 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             params[index[n]] = phys[n]
         note = None
         try:
-            out = sim.rollout(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=max(picked))
+            with sim.substep_plan_restored():
+                out = sim.rollout(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=max(picked))
             loss = module.probe_losses(out.positions, stage, cams, picked)["total"]
             if not math.isfinite(loss):
                 note, loss = "non-finite loss", math.inf
         except (SimulationError, MaterialError) as err:  # CFL/NaN after the halvings, out of the domain
             note, loss = f"{type(err).__name__}: {str(err)[:160]}", math.inf
-        finally:
-            sim.substeps_floor, sim.halvings = floor, halvings
         cache[key] = loss
         rec = {"params": phys, "loss": _finite(loss), "path": path}
         if note:

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Optional
 
 import torch
 
-from toolkit.mpm.config import GridTooLargeError, SimulationError
+from toolkit.mpm.config import SimulationError
 
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.mpm import MPMSimulator
@@ -91,16 +91,12 @@ def grid_shift(sim: "MPMSimulator", x0: torch.Tensor, v0: torch.Tensor, params: 
 
 def surface_residual(module: "InversePhysicsModule", positions: torch.Tensor, frames) -> Optional[float]:
     """Mean distance (m) between the simulated surface particles and the observed surface of each
-    of ``frames``, both ways (half the sum of the two mean nearest-neighbour distances), averaged
-    over the frames that have an observed surface; None if none has."""
-    out = []
-    for f in frames:
-        target = module.input.surfaces[f]
-        if not len(target):
-            continue
-        s = positions[f][module.surface_index].double()
-        d = torch.cdist(s, target.to(s).double())
-        out.append(0.5 * float(d.min(1).values.mean() + d.min(0).values.mean()))
+    of ``frames``, both ways (:func:`toolkit.metrics.mean_nearest_distance`), averaged over the
+    frames that have an observed surface; None if none has."""
+    from toolkit.metrics import mean_nearest_distance
+
+    out = [mean_nearest_distance(positions[f][module.surface_index], module.input.surfaces[f])
+           for f in frames if len(module.input.surfaces[f])]
     return float(sum(out) / len(out)) if out else None
 
 
@@ -120,14 +116,11 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
     x0 = (module.particles0 + module.particle_offset).detach()
     args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
     sim = module.simulator
-    floor, halvings = sim.substeps_floor, sim.halvings
     try:
-        with module.substeps_unlogged():
+        with module.substeps_unlogged(), sim.substep_plan_restored():
             rec = grid_shift(sim, x0, *args, n_frames=n_frames)
-    except (GridTooLargeError, SimulationError) as err:
+    except SimulationError as err:  # GridTooLargeError included: the fine grid does not fit
         return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}
-    finally:
-        sim.substeps_floor, sim.halvings = floor, halvings
     residual = surface_residual(module, rec.pop("positions"), range(1, n_frames + 1))
     ok = residual is not None and math.isfinite(residual) and residual > 0
     rec.update({"frames": n_frames, "residual_m": residual if ok else None,

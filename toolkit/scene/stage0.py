@@ -98,6 +98,11 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -
 # ====================================================================== schedule
 
 
+#: the fields of :class:`Stage0Schedule` that count iterations (scaled by :meth:`Stage0Schedule.compressed`)
+ITERATION_COUNT_FIELDS = ("warmup", "position_lr_max_steps", "deform_lr_max_steps", "densify_from", "densify_until",
+                          "densify_interval", "opacity_reset_interval", "sh_increase_interval")
+
+
 @dataclass
 class Stage0Schedule(DictSettings):
     settings_name = "Stage0Schedule settings"
@@ -206,12 +211,13 @@ class Stage0Schedule(DictSettings):
 
     @classmethod
     def compressed(cls, iterations: int) -> "Stage0Schedule":
-        """GIC's full schedule with every iteration count scaled by ``iterations / 40_000``
-        (warm-up, densification window and interval, opacity resets, SH steps, learning-rate
-        decay); rates, thresholds and loss weights unchanged. ``compressed(40_000) == full()``.
+        """GIC's full schedule with every iteration count (:data:`ITERATION_COUNT_FIELDS`: warm-up,
+        learning-rate decay lengths, densification window and interval, opacity resets, SH steps)
+        scaled by ``iterations / 40_000``; rates, thresholds and loss weights unchanged.
+        ``compressed(40_000) == full()``. Counts round to the nearest iteration, at least 1.
         ``projo4d run --stage0-iterations N`` and ``projo4d benchmark --stage0-iterations N`` use it
-        (a cheaper, less converged stage 0: ``benchmarks/whole_scene.py`` measures the trade, issue #16).
-        Counts round to the nearest iteration, at least 1.
+        (through :func:`compressed_settings`; a cheaper, less converged stage 0:
+        ``benchmarks/whole_scene.py`` measures the trade, issue #16).
 
         Raises:
             ValueError: ``iterations`` is not an integer >= 100.
@@ -220,21 +226,24 @@ class Stage0Schedule(DictSettings):
             raise ValueError(f"iterations must be an integer >= 100, got {iterations!r}")
         base = cls.full()
         f = iterations / base.iterations
-
-        def scaled(n: int) -> int:
-            return max(1, int(round(n * f)))
-
-        return cls(**{**base.to_dict(), "iterations": iterations, "warmup": scaled(base.warmup),
-                      "position_lr_max_steps": scaled(base.position_lr_max_steps),
-                      "deform_lr_max_steps": scaled(base.deform_lr_max_steps),
-                      "densify_from": scaled(base.densify_from), "densify_until": scaled(base.densify_until),
-                      "densify_interval": scaled(base.densify_interval),
-                      "opacity_reset_interval": scaled(base.opacity_reset_interval),
-                      "sh_increase_interval": scaled(base.sh_increase_interval)})
+        scaled = {key: max(1, int(round(getattr(base, key) * f))) for key in ITERATION_COUNT_FIELDS}
+        return cls(**{**base.to_dict(), "iterations": iterations, **scaled})
 
     @classmethod
     def defaults(cls) -> "Stage0Schedule":
         return cls.full()
+
+
+def compressed_settings(iterations: int) -> dict:
+    """:meth:`Stage0Schedule.compressed` as a ``RunSettings.stage0`` mapping: ``preset`` "full",
+    ``iterations`` and the scaled :data:`ITERATION_COUNT_FIELDS`.
+
+    Raises:
+        ValueError: ``iterations`` is not an integer >= 100.
+    """
+    schedule = Stage0Schedule.compressed(iterations)
+    return {"preset": "full", "iterations": schedule.iterations,
+            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}}
 
 
 # ====================================================================== data
