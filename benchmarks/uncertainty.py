@@ -21,6 +21,7 @@ Usage::
     python benchmarks/uncertainty.py --out outputs/uncertainty --scenes 6 # a quick look
     python benchmarks/uncertainty.py --out outputs/uncertainty_heldout --first 24   # 24 other scenes
     python benchmarks/uncertainty.py --out outputs/unc_plasticine --material plasticine --scenes 12
+    python benchmarks/uncertainty.py --out outputs/uncertainty --jobs 8   # 8 scenes at a time, one core each
 
 Other materials (``--material plasticine|newtonian|sand``): the same throws, shapes and cameras
 with the truths of :data:`OTHER_TRUTHS`, every optimizable parameter fitted from the material's
@@ -137,9 +138,12 @@ def run_scene(plan: dict, out: Path) -> dict:
     params = {}
     for name, p in unc["parameters"].items():
         tr = truth.get(name)
-        params[name] = {k: p[k] for k in ("value", "low", "high", "label", "ratio", "note")}
+        params[name] = {k: p.get(k) for k in ("value", "low", "high", "label", "ratio", "note", "grid_value", "data_low",
+                                               "data_high")}
         params[name]["truth"] = tr
         params[name]["covered"] = None if tr is None else bool(p["low"] - 1e-9 <= tr <= p["high"] + 1e-9)
+        if p.get("data_low") is not None and tr is not None:  # the interval of the data alone, without the grid term
+            params[name]["covered_by_data"] = bool(p["data_low"] - 1e-9 <= tr <= p["data_high"] + 1e-9)
     return {"scene": plan["name"], "material": material, "truth": plan["params"],
             **{k: plan[k] for k in ("throw", "shape", "azimuth")}, "v0": list(plan["v0"]),
             "contact": module.contact_normal is not None, "parameters": params, "fit_s": round(total - unc["seconds"], 2),
@@ -148,7 +152,7 @@ def run_scene(plan: dict, out: Path) -> dict:
 
 def tabulate(results: list[dict]) -> tuple[list[dict], str]:
     """Coverage per (parameter, label) and per label; the markdown table."""
-    cells: dict = defaultdict(lambda: [0, 0])
+    cells: dict = defaultdict(lambda: [0, 0, 0, 0])
     for r in results:
         for name, p in r["parameters"].items():
             if p["covered"] is None or p["note"].startswith("fixed"):
@@ -156,10 +160,16 @@ def tabulate(results: list[dict]) -> tuple[list[dict], str]:
             for key in ((name, p["label"]), ("all", p["label"])):
                 cells[key][0] += 1
                 cells[key][1] += int(p["covered"])
-    rows = [{"parameter": k[0], "label": k[1], "n": v[0], "coverage": round(v[1] / v[0], 3)} for k, v in sorted(cells.items())]
+                if p.get("covered_by_data") is not None:  # runs before the grid term have no data-only interval
+                    cells[key][2] += 1
+                    cells[key][3] += int(p["covered_by_data"])
+    rows = [{"parameter": k[0], "label": k[1], "n": v[0], "coverage": round(v[1] / v[0], 3),
+             "coverage_data_only": round(v[3] / v[2], 3) if v[2] else None} for k, v in sorted(cells.items())]
     fixed = [r for r in results for n, p in r["parameters"].items() if p["note"].startswith("fixed")]
-    lines = ["| parameter | label | estimates | 90 % interval contains the truth |", "|---|---|---|---|"]
-    lines += [f"| {r['parameter']} | {r['label']} | {r['n']} | {100 * r['coverage']:.0f} % |" for r in rows]
+    lines = ["| parameter | label | estimates | 90 % interval contains the truth | without the grid term |", "|---|---|---|---|---|"]
+    pct = lambda x: "-" if x is None else f"{100 * x:.0f} %"  # noqa: E731
+    lines += [f"| {r['parameter']} | {r['label']} | {r['n']} | {pct(r['coverage'])} | {pct(r['coverage_data_only'])} |"
+              for r in rows]
     fit = sum(r["fit_s"] for r in results)
     unc = sum(r["uncertainty_s"] for r in results)
     lines.append("")
@@ -168,12 +178,39 @@ def tabulate(results: list[dict]) -> tuple[list[dict], str]:
     return rows, "\n".join(lines)
 
 
+def _run_one(plan: dict, out: Path, threads: int) -> tuple[str, dict]:
+    import torch
+
+    torch.set_num_threads(threads)
+    try:
+        return plan["name"], run_scene(plan, out)
+    except Exception as err:  # report and go on: one failed scene must not hide the others
+        return plan["name"], {"scene": plan["name"], "error": f"{type(err).__name__}: {err}"}
+
+
+def _run_all(plans: list[dict], out: Path, jobs: int, threads: int):
+    """Yield ``(name, record)`` for each plan as it finishes; ``jobs`` > 1 runs them in that many
+    processes (spawned: Warp and torch do not survive a fork), each with ``threads`` torch threads."""
+    if jobs <= 1:
+        for plan in plans:
+            yield _run_one(plan, out, threads)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_run_one, plan, out, threads) for plan in plans]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="outputs/uncertainty")
     ap.add_argument("--scenes", type=int, default=24)
     ap.add_argument("--first", type=int, default=0, help="index of the first scene (24: a held-out set)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per scene")
+    ap.add_argument("--jobs", type=int, default=1, help="scenes fitted at once, each in its own process")
     ap.add_argument("--material", default="neo_hookean", choices=["neo_hookean", *OTHER_TRUTHS],
                     help="material family (neo_hookean: E alone with nu fixed; others: every optimizable parameter)")
     args = ap.parse_args(argv)
@@ -189,16 +226,15 @@ def main(argv=None) -> int:
             if line.strip():
                 rec = json.loads(line)
                 done[rec["scene"]] = rec
+    plans = scene_plan(args.scenes, args.first, args.material)
+    todo = [p for p in plans if p["name"] not in done]
+    for name, rec in _run_all(todo, out, args.jobs, args.threads):
+        with done_path.open("a") as f:  # one line per finished scene: a killed run resumes from here
+            f.write(json.dumps(rec) + "\n")
+        done[name] = rec
     results = []
-    for plan in scene_plan(args.scenes, args.first, args.material):
-        rec = done.get(plan["name"])
-        if rec is None:
-            try:
-                rec = run_scene(plan, out)
-            except Exception as err:  # report and go on: one failed scene must not hide the others
-                rec = {"scene": plan["name"], "error": f"{type(err).__name__}: {err}"}
-            with done_path.open("a") as f:
-                f.write(json.dumps(rec) + "\n")
+    for plan in plans:
+        rec = done[plan["name"]]
         print(json.dumps(rec), flush=True)
         if "error" not in rec:
             results.append(rec)

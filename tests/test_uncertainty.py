@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests.physics_fixtures import TRUTH, V0, fit_sim, tiny_scene
-from tests.uncertainty_scenes import SLIDE_TRUTH, SLIDE_V0, slide_scene, slide_sim
+from tests.uncertainty_scenes import SLIDE_TRUTH, SLIDE_V0, slide_scene, slide_sim, toss_module_at_truth
 from toolkit.mpm import SimConfig
 from toolkit.physics import InversePhysicsModule
 from toolkit.physics.contact import ground_contact_normal, project_off_ground
@@ -59,7 +59,7 @@ def test_frictionless_slide_leaves_E_undetermined_and_v0_on_the_ground(slide_inp
     for c, i in (("x", 0), ("z", 2)):
         assert unc[f"v0_{c}"]["label"] == DETERMINED
         assert _contains(unc[f"v0_{c}"], SLIDE_V0[i])
-    assert est["uncertainty"]["rollouts"] <= 4 * 3 + 8  # Jacobian, curvature, step and interval checks
+    assert est["uncertainty"]["rollouts"] <= 4 * 3 + 8 + 2  # Jacobian, curvature, step, interval checks, grid term
 
 
 @pytest.mark.slow
@@ -109,22 +109,14 @@ def test_prior_step_is_undone_where_the_images_determine_what_the_geometry_leave
     empty = torch.zeros((0, 3), dtype=toss_input.surfaces[0].dtype)
     blind = dataclasses.replace(toss_input, surfaces=[s if f <= 1 else empty for f, s in enumerate(toss_input.surfaces)])
 
-    def at_truth(inp):
-        m = InversePhysicsModule(inp, curriculum="XAS:1,XASM:1", sim=fit_sim(), renderer="warp", optimize_params=["E"],
-                                 initial_params={"E": 1e4, "nu": TRUTH["nu"]}, material_init="given")
-        with torch.no_grad():
-            m.material_raw["E"].fill_(math.log10(TRUTH["E"]))
-            m.v0.copy_(torch.tensor(V0, dtype=m.v0.dtype))
-        return m
-
-    m = at_truth(blind)
+    m = toss_module_at_truth(blind)
     assert _frames(m) == [1]
     res = estimate_uncertainty(m).to_dict()
     step, E = res["prior_step"], res["parameters"]["E"]
     assert step["taken"] is False and step["fit_loss_rise"] > FIT_LOSS_TOLERANCE and step["reason"].startswith("reverted")
     assert E["value"] == pytest.approx(TRUTH["E"], rel=1e-4)  # the fitted value stays
     assert E["label"] == WEAK and "the images constrain it" in E["note"]
-    full = estimate_uncertainty(at_truth(toss_input)).to_dict()["parameters"]["E"]
+    full = estimate_uncertainty(toss_module_at_truth(toss_input)).to_dict()["parameters"]["E"]
     assert full["label"] == DETERMINED and full["value"] == pytest.approx(TRUTH["E"], rel=1e-4)
 
 

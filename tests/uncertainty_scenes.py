@@ -29,3 +29,21 @@ def slide_scene(root: Path, n_frames: int = 6) -> Path:
 
 def slide_sim() -> SimConfig:
     return SimConfig(dx=0.04, substeps=30, auto_dt_halving=True, boundary="slip")
+
+
+def toss_module_at_truth(inp):
+    """An E-and-v0 module on the falling box of ``tests.physics_fixtures`` (its oracle input ``inp``),
+    set to the true E and v0 without fitting (start E 1e4, no coarse search)."""
+    import math
+
+    import torch
+
+    from tests.physics_fixtures import TRUTH, V0, fit_sim
+    from toolkit.physics import InversePhysicsModule
+
+    m = InversePhysicsModule(inp, curriculum="XAS:1,XASM:1", sim=fit_sim(), renderer="warp", optimize_params=["E"],
+                             initial_params={"E": 1e4, "nu": TRUTH["nu"]}, material_init="given")
+    with torch.no_grad():
+        m.material_raw["E"].fill_(math.log10(TRUTH["E"]))
+        m.v0.copy_(torch.tensor(V0, dtype=m.v0.dtype))
+    return m

@@ -211,16 +211,21 @@ def write_report(run_dir: str | Path, history: Sequence[dict], curriculum: Seque
 
 
 def write_uncertainty_table(uncertainty: dict, path: str | Path, truth: Optional[dict] = None) -> Path:
-    """A markdown table: parameter, estimate, interval at the result's level, label, note (and the truth when known)."""
+    """A markdown table: parameter, estimate, interval at the result's level, the estimate on a grid of
+    half the spacing (the grid term, :mod:`toolkit.physics.grid_term`), label, note (and the truth
+    when known)."""
     truth = truth or {}
     known = dict(truth.get("params") or {})
     if truth.get("v0") is not None:
         known.update({f"v0_{c}": truth["v0"][i] for i, c in enumerate("xyz")})
     level = round(100 * float(uncertainty.get("level", 0.9)))
-    lines = [f"| parameter | estimate | {level} % interval | label | truth | note |", "|---|---|---|---|---|---|"]
+    lines = [f"| parameter | estimate | {level} % interval | on a grid of half the spacing | label | truth | note |",
+             "|---|---|---|---|---|---|---|"]
     for name, p in uncertainty["parameters"].items():
         tr = known.get(name)
-        lines.append(f"| {name} | {p['value']:.4g} | [{p['low']:.3g}, {p['high']:.3g}] | {p['label']} | "
+        fine = p.get("grid_value")
+        lines.append(f"| {name} | {p['value']:.4g} | [{p['low']:.3g}, {p['high']:.3g}] | {'-' if fine is None else f'{fine:.4g}'} | "
+                     f"{p['label']} | "
                      f"{'-' if tr is None else f'{tr:.4g}'} | {p.get('note', '')} |")
     path = Path(path)
     write_with(path, lambda t: Path(t).write_text("\n".join(lines) + "\n"))

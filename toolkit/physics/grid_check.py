@@ -39,7 +39,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.mpm import MPMSimulator
     from toolkit.physics.module import InversePhysicsModule
 
-__all__ = ["subdivide", "grid_shift", "grid_convergence", "format_grid_check", "annotate_grid", "GRID_NOTE"]
+__all__ = ["subdivide", "grid_shift", "grid_convergence", "judge_grid_shift", "state_key", "format_grid_check", "annotate_grid",
+           "GRID_NOTE"]
 
 #: added to the note of each material parameter when the grid check fails
 GRID_NOTE = "grid-dependent: a grid of half the spacing moves the fit more than its misfit (see the grid check)"
@@ -86,7 +87,7 @@ def grid_shift(sim: "MPMSimulator", x0: torch.Tensor, v0: torch.Tensor, params: 
     per_frame = (parents - coarse.positions).norm(dim=-1).mean(1).cpu().numpy()
     return {"dx": float(cfg.dx), "fine_dx": float(fine_cfg.dx), "shift_m": float(per_frame[1:].mean()) if n_frames else 0.0,
             "shift_per_frame_m": [float(s) for s in per_frame], "substeps": int(coarse.substeps),
-            "fine_substeps": int(out.substeps), "positions": coarse.positions}
+            "fine_substeps": int(out.substeps), "positions": coarse.positions, "fine_positions": parents}
 
 
 def surface_residual(module: "InversePhysicsModule", positions: torch.Tensor, frames) -> Optional[float]:
@@ -100,10 +101,24 @@ def surface_residual(module: "InversePhysicsModule", positions: torch.Tensor, fr
     return float(sum(out) / len(out)) if out else None
 
 
+def state_key(module: "InversePhysicsModule") -> bytes:
+    """Bytes of everything that moves the particles (positions, v0, gravity, material, effects): two
+    equal keys simulate the same trajectory."""
+    with torch.no_grad():
+        parts = [module.particle_offset.detach().flatten(), module.v0.detach().flatten(), module.gravity.detach().flatten(),
+                 module.material_params().detach().flatten(), module.effect_params.detach().flatten()]
+        return torch.cat([p.float().cpu() for p in parts]).numpy().tobytes()
+
+
 @torch.no_grad()
 def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = None) -> dict:
     """:func:`grid_shift` of a fitted module's estimate over its training frames, judged against
-    the fit's own residual (:func:`surface_residual` of the training frames after the first).
+    the fit's own residual (:func:`judge_grid_shift`).
+
+    The uncertainty step (:mod:`toolkit.physics.uncertainty`) runs the same check at the end of a fit
+    for its grid term and keeps the record on the module (``grid_check_result``, with the
+    :func:`state_key` it was computed at); when the estimate has not moved since, that record is
+    returned instead of simulating again.
 
     Returns:
         the :func:`grid_shift` record (without positions) plus ``residual_m`` (None when no frame
@@ -111,8 +126,11 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
         None without a residual), ``frames`` and ``seconds``; or ``{"skipped": reason}`` when the
         fine grid does not fit in memory or its rollout fails.
     """
-    t = time.perf_counter()
     n_frames = int(n_frames if n_frames is not None else module.input.n_train - 1)
+    cached = getattr(module, "grid_check_result", None)
+    if cached and cached.get("frames") == n_frames and getattr(module, "grid_check_key", None) == state_key(module):
+        return dict(cached)
+    t = time.perf_counter()
     x0 = (module.particles0 + module.particle_offset).detach()
     args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
     sim = module.simulator
@@ -121,11 +139,20 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
             rec = grid_shift(sim, x0, *args, n_frames=n_frames)
     except SimulationError as err:  # GridTooLargeError included: the fine grid does not fit
         return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}
-    residual = surface_residual(module, rec.pop("positions"), range(1, n_frames + 1))
+    return judge_grid_shift(module, rec, n_frames, t)
+
+
+def judge_grid_shift(module: "InversePhysicsModule", rec: dict, n_frames: int, started: float) -> dict:
+    """Compare a :func:`grid_shift` record with the fit's own residual (:func:`surface_residual` of
+    training frames 1..``n_frames``); drops its positions, logs a warning when the grid moves the
+    prediction more than the misfit. ``started``: ``time.perf_counter()`` when the check began."""
+    positions = rec["positions"]
+    rec = {k: v for k, v in rec.items() if k not in ("positions", "fine_positions")}
+    residual = surface_residual(module, positions, range(1, n_frames + 1))
     ok = residual is not None and math.isfinite(residual) and residual > 0
     rec.update({"frames": n_frames, "residual_m": residual if ok else None,
                 "ratio": rec["shift_m"] / residual if ok else None,
-                "converged": bool(rec["shift_m"] <= residual) if ok else None, "seconds": time.perf_counter() - t})
+                "converged": bool(rec["shift_m"] <= residual) if ok else None, "seconds": time.perf_counter() - started})
     if rec["converged"] is False:
         log.warning("%s", format_grid_check(rec))
     return rec

@@ -146,11 +146,10 @@ class PeriodicEvaluation(Callback):
         return held[0] if held else module.input.train_cameras[0]
 
     def _state_key(self, module) -> bytes:
-        """Bytes of everything that moves the particles (positions, v0, gravity, material, effects)."""
-        with torch.no_grad():
-            parts = [module.particle_offset.detach().flatten(), module.v0.detach().flatten(), module.gravity.detach().flatten(),
-                     module.material_params().detach().flatten(), module.effect_params.detach().flatten()]
-            return torch.cat([p.float().cpu() for p in parts]).numpy().tobytes()
+        """Bytes of everything that moves the particles (:func:`toolkit.physics.grid_check.state_key`)."""
+        from toolkit.physics.grid_check import state_key
+
+        return state_key(module)
 
     @torch.no_grad()
     def evaluate(self, module) -> dict:

@@ -40,12 +40,20 @@ which measures the optimizer rather than the data):
    geometric terms over every training frame and camera) rises by at most
    :data:`FIT_LOSS_TOLERANCE`: otherwise the images determine what the geometric term leaves free,
    the fitted values stay, and those parameters are labelled *weakly determined* with a note.
+7. The grid term (``grid_term``, :mod:`toolkit.physics.grid_term`): the estimate is simulated on a
+   grid of half the spacing as well, the change of the residuals is projected onto ``J`` (one
+   Gauss-Newton step with the prior), and each interval is widened to cover the estimate shifted
+   by that offset too. The intervals of steps 1-6 measure the data's spread around the minimum of
+   the fit's loss; a grid too coarse for the body moves the minimum (on the calibration benchmark
+   stiff tosses fitted at twice the truth's dx ended 0.3-0.5 decades soft, outside their
+   intervals). The record is the grid check's, kept for the pipeline to reuse.
 
 Cost: 4K + 1 rollouts for steps 1-2, 2 per nonlinear parameter for step 5 and at most 7 for step
 6, all forward (a fit iteration is a forward and a backward pass, 4.5-6x a forward): 16-22
-rollouts for E and v0, 5-7 % of the fit in the benchmark. The initial velocity's component along
-the ground normal of a body resting on a non-separating ground is fixed at 0
-(:mod:`toolkit.physics.contact`) and reported with a note.
+rollouts for E and v0, 5-7 % of the fit in the benchmark. Step 7 adds one rollout on the fit's grid
+and one on the fine grid (8x the particles). The initial velocity's component along the ground
+normal of a body resting on a non-separating ground is fixed at 0 (:mod:`toolkit.physics.contact`)
+and reported with a note.
 """
 
 from __future__ import annotations
@@ -57,6 +65,8 @@ from typing import Callable, Optional
 
 import numpy as np
 import torch
+
+from toolkit.physics.uncertainty_probes import _fit_loss_rise, _geometric_ssr, _map_step, _open_sides, _Residuals, _simulate
 
 __all__ = ["LABELS", "DETERMINED_BELOW", "NOT_DETERMINED_ABOVE", "PRIOR_STD", "CLUSTERS_PER_FRAME", "ParameterUncertainty",
            "Uncertainty", "estimate_uncertainty", "label_for"]
@@ -118,6 +128,11 @@ class ParameterUncertainty:
         std: posterior std in that space.
         prior: prior mean (the initial guess), physical units.
         note: why a parameter is fixed (e.g. ground contact), else empty.
+        grid_offset: the grid term (:mod:`toolkit.physics.grid_term`): how far a grid of half the
+            spacing moves the estimate, in the raw space; the interval covers both; 0 when not run.
+        grid_value: the estimate moved by ``grid_offset``, physical units (None when not run).
+        data_low, data_high: the interval of the data alone (steps 1-6, before the grid term widens
+            it), physical units.
     """
 
     name: str
@@ -130,6 +145,10 @@ class ParameterUncertainty:
     std: float
     prior: float
     note: str = ""
+    grid_offset: float = 0.0
+    grid_value: Optional[float] = None
+    data_low: Optional[float] = None
+    data_high: Optional[float] = None
 
 
 @dataclass
@@ -144,6 +163,7 @@ class Uncertainty:
     rollouts: int
     seconds: float
     prior_step: dict = field(default_factory=dict)
+    grid: dict = field(default_factory=dict)
 
     def by_name(self) -> dict[str, ParameterUncertainty]:
         return {p.name: p for p in self.parameters}
@@ -208,48 +228,7 @@ def _frames(module) -> list[int]:
     return [f for f in range(1, module.input.n_train) if len(module.input.surfaces[f])]
 
 
-def _simulate(module, n: int) -> torch.Tensor:
-    with torch.no_grad(), module.substeps_unlogged():  # probes, not the fit: no substep log lines
-        _, pos = module.simulate(n, frozenset())
-    return pos
-
-
-def _nearest(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Index in ``b`` of each point of ``a``'s nearest neighbour."""
-    return torch.cdist(a.double(), b.double()).argmin(dim=1)
-
-
-class _Residuals:
-    """The geometric loss as a residual vector with nearest neighbours fixed at the base state.
-
-    ``sum(r**2)`` equals ``lambda_geometry * sum_f chamfer(surface_f, target_f) / F`` at the base.
-    """
-
-    def __init__(self, module, frames: list[int], positions: torch.Tensor):
-        self.module, self.frames = module, frames
-        self.targets = [module.input.surfaces[f].to(positions.device).double() for f in frames]
-        self.scale = math.sqrt(module.lambda_geometry / len(frames))
-        self.match = []
-        for f, t in zip(frames, self.targets):
-            s = positions[f][module.surface_index].double()
-            self.match.append((_nearest(s, t), _nearest(t, s)))
-
-    def __call__(self, positions: torch.Tensor) -> torch.Tensor:
-        parts = []
-        for f, t, (st, ts) in zip(self.frames, self.targets, self.match):
-            s = positions[f][self.module.surface_index].double()
-            parts.append((s - t[st]).reshape(-1) / math.sqrt(len(s)))
-            parts.append((t - s[ts]).reshape(-1) / math.sqrt(len(t)))
-        return torch.cat(parts) * self.scale
-
-
-def _geometric_ssr(module, frames: list[int], positions: torch.Tensor) -> float:
-    """The geometric loss with nearest neighbours re-matched (what the fit minimizes)."""
-    r = _Residuals(module, frames, positions)(positions)
-    return float((r ** 2).sum())
-
-
-def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) -> Uncertainty:
+def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, grid_term: bool = True) -> Uncertainty:
     """Intervals and labels for ``module``'s current estimate (see the module docstring).
 
     Args:
@@ -257,6 +236,9 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
         level: coverage of the intervals (0.9: 90 %).
         prior_step: take one MAP Gauss-Newton step with the prior first (moves parameters the clip
             does not determine back toward their initial guess); ``False`` only reports.
+        grid_term: widen each interval to cover the estimate a grid of half the spacing would give
+            (:mod:`toolkit.physics.grid_term`; step 7 of the module docstring). Its record, the
+            grid check, is ``grid`` of the result.
 
     Returns:
         :class:`Uncertainty`; the module's parameters are changed only by an accepted prior step.
@@ -374,6 +356,15 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
     finally:
         sim.substeps_floor = floor
         module._cached_positions = None
+    offsets, grid = None, {}
+    if grid_term:
+        from toolkit.physics.grid_term import grid_offsets
+
+        for p, v in zip(params, theta):
+            p.set(float(v))
+        offsets, grid = grid_offsets(module, residuals, J.cpu().numpy(), s2, prior_prec)
+        module._cached_positions = None
+        rollouts += 2
     out = []
     for k, p in enumerate(params):
         sd = float(sds[k])
@@ -392,9 +383,18 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
             label = LABELS[1]
             note = (f"the geometric term leaves it free (interval from it alone), but moving it to its prior "
                     f"raises the fit's loss by {100 * image_held[k]:.1f} %: the images constrain it")
+        data_low, data_high = sorted((p.physical(ends[0]), p.physical(ends[1])))
+        off, moved_to = 0.0, None
+        if offsets is not None:
+            off = float(offsets[k])
+            moved_to = p.physical(theta[k] + off)
+            ends = [min(ends[0], ends[0] + off), max(ends[1], ends[1] + off)]  # the fine grid's answer too
+            if abs(off) > sd:
+                note = "; ".join(x for x in (note, f"a grid of half the spacing moves it to {moved_to:.3g} (the interval "
+                                                   f"covers both grids)") if x)
         lo, hi = sorted((p.physical(ends[0]), p.physical(ends[1])))
         out.append(ParameterUncertainty(p.name, p.physical(theta[k]), lo, hi, label, ratio, p.space, sd,
-                                        p.physical(p.prior_mean), note))
+                                        p.physical(p.prior_mean), note, off, moved_to, data_low, data_high))
     normal = getattr(module, "contact_normal", None)
     if normal is not None:
         i = max(range(3), key=lambda j: abs(normal[j]))
@@ -403,105 +403,20 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True) ->
         group = lambda o: (1, o.name) if o.name.startswith("v0_") else (2, "") if o.name.startswith("gravity_") else (  # noqa: E731
             0, "") if o.name in module.material.param_names else (3, "")
         out.sort(key=group)  # stable: material, v0 x y z, gravity, effects
-    return Uncertainty(out, level, math.sqrt(s2), int(dof), len(frames), rollouts, time.perf_counter() - start, step_info)
-
-
-def _open_sides(module, params, frames, n, theta, sds, q, curvature, s2) -> tuple[dict[int, tuple[int, ...]], int]:
-    """Sides of the interval of each nonlinear (log10, tanh) parameter the data do not bound.
-
-    The linearization predicts that moving parameter k alone to an end of its interval raises the
-    data term ``SSR / (2 s^2)`` by ``h^2 J_k.J_k / (2 s^2)``. A side where the simulated rise is
-    below :data:`OPEN_SIDE_FRACTION` of that is open: e.g. a stiffness that a small sag bounds
-    from below while any stiffer value looks the same. Parameters whose label is already
-    ``not determined`` are skipped (their interval ends may be decades away). Returns
-    ``({k: (-1 and/or +1)}, rollouts)``.
-    """
-    found: dict[int, tuple[int, ...]] = {}
-    rollouts = 0
-    for p, v in zip(params, theta):
-        p.set(float(v))
-    base = _geometric_ssr(module, frames, _simulate(module, n))
-    rollouts += 1
-    for k, p in enumerate(params):
-        h = q * sds[k]
-        expected = h ** 2 * curvature[k] / (2 * s2)
-        if p.space == "linear" or label_for(sds[k] / p.prior_std) == LABELS[2] or expected <= 0:
-            continue
-        sides = []
-        for side in (-1, 1):
-            p.set(float(theta[k] + side * h))
-            try:
-                rise = (_geometric_ssr(module, frames, _simulate(module, n)) - base) / (2 * s2)
-            except Exception:  # the simulator rejects that state: the data do rule it out
-                rise = math.inf
-            rollouts += 1
-            if rise < OPEN_SIDE_FRACTION * expected:
-                sides.append(side)
-        p.set(float(theta[k]))
-        if sides:
-            found[k] = tuple(sides)
-    return found, rollouts
-
-
-def _fit_loss_rise(module, params, n: int, before: np.ndarray, after: np.ndarray) -> tuple[float, int]:
-    """Relative change of the fit's own loss (:meth:`~toolkit.physics.InversePhysicsModule.losses`
-    of the last stage that optimizes the material, else the last stage: image and geometric terms,
-    every training camera, every fitted frame after frame 0) from ``before`` to ``after`` (raw
-    parameters); the parameters are left at ``after``. Returns ``(rise, rollouts)``."""
-    stages = list(module.stages)
-    stage = next((s for s in reversed(stages) if "M" in s.groups), stages[-1])
-    cams = list(module.input.train_cameras)
-    fit_frames = list(range(1, module.input.n_train))
-    losses = []
-    for th in (before, after):
-        for p, v in zip(params, th):
-            p.set(float(v))
-        losses.append(module.probe_losses(_simulate(module, max([n, *fit_frames])), stage, cams, fit_frames)["total"])
-    rise = (losses[1] - losses[0]) / max(abs(losses[0]), 1e-30)
-    return (rise if math.isfinite(rise) else math.inf), 2
-
-
-def _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec, free: list[int]):
-    """One Gauss-Newton step on ``SSR / (2 s^2) + prior`` in the coordinates ``free`` (the others
-    held), halved until the objective decreases."""
-
-    def objective(th, positions=None):
-        for p, v in zip(params, th):
-            p.set(float(v))
-        positions = positions if positions is not None else _simulate(module, n)
-        return _geometric_ssr(module, frames, positions) / (2 * s2) + 0.5 * float(((th - prior_mean) ** 2 * prior_prec).sum())
-
-    grad = grad_data / s2 + prior_prec * (theta - prior_mean)
-    delta = np.zeros_like(theta)
-    delta[free] = -np.linalg.solve(H[np.ix_(free, free)], grad[free])
-    for p, v in zip(params, theta):
-        p.set(float(v))
-    f0 = objective(theta, _simulate(module, n))
-    rollouts = 1
-    for alpha in (1.0, 0.5, 0.25, 0.125):
-        trial = theta + alpha * delta
-        try:
-            f = objective(trial)
-        except Exception:  # a trial state the simulator rejects (e.g. too stiff): try a shorter step
-            f = math.inf
-        rollouts += 1
-        if f < f0:
-            moved = {p.name: float(d) for p, d in zip(params, alpha * delta)}
-            return trial, {"taken": True, "scale": alpha, "objective": [f0, f], "moved_raw": moved}, rollouts
-    for p, v in zip(params, theta):
-        p.set(float(v))
-    return theta, {"taken": False, "objective": [f0, f0]}, rollouts
+    return Uncertainty(out, level, math.sqrt(s2), int(dof), len(frames), rollouts, time.perf_counter() - start, step_info,
+                       grid)
 
 
 def annotate_rows(rows: list[dict], result: Optional[dict]) -> list[dict]:
-    """Add ``low``, ``high``, ``label`` and ``note`` to summary rows (``{"parameter": name, ...}``)
+    """Add ``low``, ``high``, ``label``, ``note`` and ``grid_value`` (the estimate on a grid of half the
+    spacing, :mod:`toolkit.physics.grid_term`) to summary rows (``{"parameter": name, ...}``)
     from an :meth:`Uncertainty.to_dict` result; parameters the fit did not optimize get
     ``label = "fixed (not fitted)"``. Rows are changed in place and returned."""
     params = (result or {}).get("parameters", {})
     for row in rows:
         p = params.get(row["parameter"])
         if p is not None:
-            row.update(low=p["low"], high=p["high"], label=p["label"], note=p.get("note", ""))
+            row.update(low=p["low"], high=p["high"], label=p["label"], note=p.get("note", ""), grid_value=p.get("grid_value"))
         elif result is not None:
             row.update(low=None, high=None, label="fixed (not fitted)", note="")
     return rows
