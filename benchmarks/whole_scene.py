@@ -109,10 +109,12 @@ def run_budget(scene: pathlib.Path, out: pathlib.Path, family: str, budget: int,
     line.update({k: rec["metrics"][k] for k in ("init_cd", "cd", "emd", "psnr")})
     line["errors"] = rec["errors"]
     summary = json.loads((run / "summary.json").read_text())
-    line["estimates"] = {r["parameter"]: {k: r.get(k) for k in ("estimate", "truth", "label")}
+    line["estimates"] = {r["parameter"]: {k: r.get(k) for k in ("estimate", "truth", "label", "low", "high", "grid_value")}
                          for r in summary.get("parameters", []) if isinstance(r, dict)}
     grid = summary.get("grid_check") or {}
     line["grid_check"] = {k: grid.get(k) for k in ("dx", "fine_dx", "shift_m", "residual_m", "converged", "skipped") if k in grid}
+    settings = run / "settings.json"
+    line["sim"] = json.loads(settings.read_text()).get("sim") if settings.is_file() else None  # the fit's grid
     return line
 
 
