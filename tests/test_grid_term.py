@@ -79,3 +79,18 @@ def test_without_the_grid_term_the_interval_is_the_data_one(toss_input):
     E = res["parameters"]["E"]
     assert res["grid"] == {} and E["grid_value"] is None and E["grid_offset"] == 0.0
     assert (E["low"], E["high"]) == (E["data_low"], E["data_high"])
+
+
+def test_a_fine_grid_that_does_not_fit_leaves_the_data_interval(toss_input, monkeypatch):
+    """A device out of memory on the finer grid costs the grid term, not the uncertainty."""
+    from toolkit.mpm.config import GridTooLargeError
+
+    for err in (RuntimeError("CUDA out of memory"), GridTooLargeError("grid of 2.1e9 nodes")):
+        def fail(*args, err=err, **kwargs):
+            raise err
+
+        monkeypatch.setattr(grid_check, "grid_shift", fail)
+        res = estimate_uncertainty(toss_module_at_truth(toss_input), prior_step=False).to_dict()
+        E = res["parameters"]["E"]
+        assert res["grid"]["skipped"].startswith(type(err).__name__)
+        assert E["grid_value"] is None and (E["low"], E["high"]) == (E["data_low"], E["data_high"])

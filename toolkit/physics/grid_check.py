@@ -137,7 +137,7 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
     try:
         with module.substeps_unlogged(), sim.substep_plan_restored():
             rec = grid_shift(sim, x0, *args, n_frames=n_frames)
-    except SimulationError as err:  # GridTooLargeError included: the fine grid does not fit
+    except (SimulationError, RuntimeError) as err:  # GridTooLargeError, or a device out of memory: the fine grid does not fit
         return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}
     return judge_grid_shift(module, rec, n_frames, t)
 

@@ -72,7 +72,7 @@ def grid_offsets(module, residuals, jacobian: np.ndarray, s2: float, prior_preci
     try:
         with module.substeps_unlogged(), sim.substep_plan_restored():
             shift = grid_shift(sim, x0, *args, n_frames=n_frames)
-    except SimulationError as err:  # GridTooLargeError included: the fine grid does not fit
+    except (SimulationError, RuntimeError) as err:  # GridTooLargeError, or a device out of memory: the fine grid does not fit
         rec = {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - started}
         return None, rec
     d = (residuals(shift["fine_positions"]) - residuals(shift["positions"])).cpu().numpy()
