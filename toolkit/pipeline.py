@@ -70,6 +70,9 @@ class RunSettings:
         checkpoint_every: physics iterations between checkpoints.
         report_cameras: cameras shown in the video (default: two fitted and two held-out ones).
         seed: seed of stage 0 and of the batch sampling.
+        refine_grid: when the grid check finds the estimate grid-dependent, fit again at half the
+            grid spacing in ``out/refined`` from the estimate, sharing stage 0
+            (:mod:`toolkit.grid_refinement`); the summary's ``refined`` holds that run's summary.
         threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
             alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
             ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA
@@ -102,6 +105,7 @@ class RunSettings:
     report_cameras: Optional[list[int]] = None
     seed: int = 0
     threads: Optional[int] = None
+    refine_grid: bool = False
 
     def validate(self) -> dict:
         """Check every setting against the scene before any work (nothing is written).
@@ -118,6 +122,10 @@ class RunSettings:
         from toolkit.run_config import check_model_options
 
         check_model_options(self.model_options)
+        if not isinstance(self.refine_grid, bool):
+            from toolkit.run_validation import SettingsError
+
+            raise SettingsError("refine_grid", self.refine_grid, "true or false")
         return validate_run_settings(self)
 
 
@@ -388,6 +396,13 @@ def _run_steps(s: RunSettings) -> dict:
     summary = evaluate_and_report(module, run, s, timings)
     summary["threads"] = threads.to_dict()
     write_json(run / "summary.json", summary)
+    if s.refine_grid:
+        from toolkit.grid_refinement import refine_grid
+
+        _stop_if_interrupted("after the run (its summary is saved); the refined fit is next")
+        refined = refine_grid(s, summary, module.estimate())
+        summary["refined"] = None if refined is None else {"out": str(run / "refined"), "summary": refined}
+        write_json(run / "summary.json", summary)
     return summary
 
 
@@ -495,4 +510,8 @@ def format_summary(summary: dict) -> str:
 
         lines.append(format_grid_check(summary["grid_check"]))
     lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
+    refined = summary.get("refined")
+    if refined:
+        lines.append(f"--- refined on a grid of half the spacing ({refined['out']}):")
+        lines.append(format_summary(refined["summary"]))
     return "\n".join(lines)

@@ -1,0 +1,83 @@
+"""Fit again on a grid of half the spacing when the grid check says the estimate depends on the grid.
+
+``projo4d run --refine-grid`` (``RunSettings.refine_grid``) adds one step after the run: when the
+grid check (:mod:`toolkit.physics.grid_check`) finds that halving dx moves the training frames by
+more than the fit's misfit, the physics is fitted again at ``dx / 2`` in the sub-folder
+``OUT/refined/``, a run folder of its own (its own ``run.json``, ``summary.json`` and report):
+
+* it shares the parent's stage 0 (``refined/stage0`` links to ``../stage0``; nothing is trained
+  again) and builds its continuum at the finer spacing (particles at ``dx / 4``);
+* the material parameters and v0 start at the parent's estimate (``material_init="given"``: no
+  coarse search on the finer grid), with the parent's curriculum;
+* it is not refined again, whatever its own grid check says.
+
+The refinement costs about 8x the particles and nodes and twice the substeps of the parent's
+physics stage (one full-size elastic scene on an H100: 176 s at dx 0.02 m, 247 s at 0.01 m with two
+runs sharing the card), which is why it is not the default. Why it is worth it where the grid
+check fails: the full-size letter T of the whole-scene benchmark came out 0.60 decades soft in E at
+dx 0.02 m and 0.16 at 0.01 m (``docs/limits.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Optional
+
+if TYPE_CHECKING:  # pragma: no cover
+    from toolkit.pipeline import RunSettings
+
+__all__ = ["REFINED_FOLDER", "needs_refinement", "refined_settings", "refine_grid"]
+
+#: the refined run's sub-folder of the run folder
+REFINED_FOLDER = "refined"
+
+log = logging.getLogger(__name__)
+
+
+def needs_refinement(summary: dict) -> bool:
+    """True when the run's grid check ran and found the estimate grid-dependent (``converged`` False)."""
+    grid = summary.get("grid_check") or {}
+    return grid.get("converged") is False and bool(grid.get("fine_dx"))
+
+
+def refined_settings(s: "RunSettings", estimate: dict, fine_dx: float) -> "RunSettings":
+    """The settings of the refined run: ``s`` at ``sim.dx = fine_dx`` in ``s.out/refined``, starting
+    at ``estimate`` (:meth:`~toolkit.physics.InversePhysicsModule.estimate`: material parameters, v0,
+    effect strengths, and gravity when it is fitted), without a coarse search and without a further
+    refinement. A continuum spacing the parent
+    set explicitly is halved too."""
+    params = {k: float(v) for k, v in estimate["params"].items()}
+    options = {**(s.model_options or {}), "material_init": "given", "v0_init": [float(v) for v in estimate["v0"]]}
+    if estimate.get("effects"):
+        options["effects"] = estimate["effects"]
+    sim = {**s.sim, "dx": float(fine_dx)}
+    if s.optimize_gravity:
+        sim["gravity"] = [float(g) for g in estimate["gravity"]]
+    continuum = dict(s.continuum)
+    if "grid_size" in continuum:
+        continuum["grid_size"] = float(continuum["grid_size"]) / 2
+    return dataclasses.replace(s, out=str(Path(s.out) / REFINED_FOLDER), sim=sim,
+                               initial_params={**(s.initial_params or {}), **params}, model_options=options,
+                               continuum=continuum, refine_grid=False)
+
+
+def refine_grid(s: "RunSettings", summary: dict, estimate: dict) -> Optional[dict]:
+    """Run the refined fit when :func:`needs_refinement` (else None); returns its summary (also in
+    ``s.out/refined/summary.json``). The parent's stage 0 is shared by a link, so it is not trained
+    again."""
+    from toolkit.pipeline import run_pipeline
+    from toolkit.run_folder import claim_run_folder
+
+    if not needs_refinement(summary):
+        return None
+    child = refined_settings(s, estimate, summary["grid_check"]["fine_dx"])
+    out = Path(child.out)
+    claim_run_folder(child, "auto")  # before the link: a folder holding only stage0/ is not a run
+    stage0 = Path(s.out) / "stage0"
+    if stage0.is_dir() and not (out / "stage0").exists():
+        os.symlink(os.path.relpath(stage0, out), out / "stage0", target_is_directory=True)
+    log.info("grid check failed: fitting again at dx %g m in %s", child.sim["dx"], out)
+    return run_pipeline(child, mode="auto")
