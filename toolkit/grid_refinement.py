@@ -79,5 +79,6 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict) -> Optional[dic
     stage0 = Path(s.out) / "stage0"
     if stage0.is_dir() and not (out / "stage0").exists():
         os.symlink(os.path.relpath(stage0, out), out / "stage0", target_is_directory=True)
-    log.info("grid check failed: fitting again at dx %g m in %s", child.sim["dx"], out)
+    log.warning("--refine-grid: the grid check failed, fitting again at dx %g m in %s (about 8x the physics stage)",
+                child.sim["dx"], out)
     return run_pipeline(child, mode="auto")
