@@ -9,6 +9,7 @@ import math
 import numpy as np
 import torch
 
+
 def _simulate(module, n: int) -> torch.Tensor:
     with torch.no_grad(), module.substeps_unlogged():  # probes, not the fit: no substep log lines
         _, pos = module.simulate(n, frozenset())

@@ -1,0 +1,74 @@
+"""A run's summary: the ``summary.json`` record of a fitted module and its terminal table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["run_summary", "format_summary"]
+
+
+def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> dict:
+    """The ``summary.json`` of a fitted ``module``: estimate beside the truth with intervals and
+    labels, future and training metrics, timings and report files (``evaluation``: the
+    :func:`toolkit.evaluation.evaluate_module` record)."""
+    est = module.estimate()
+    gt = module.input.ground_truth or {}
+    rows = []
+    for name, value in est["params"].items():
+        truth = (gt.get("params") or {}).get(name)
+        rows.append({"parameter": name, "estimate": value, "truth": truth})
+    for i, c in enumerate("xyz"):
+        rows.append({"parameter": f"v0_{c}", "estimate": est["v0"][i], "truth": None if gt.get("v0") is None else gt["v0"][i]})
+    from toolkit.physics.uncertainty import annotate_rows  # 90 % intervals and identifiability labels (issue #24)
+
+    annotate_rows(rows, module.uncertainty_result)
+    geo = evaluation.get("geometry") or {}
+    img = (evaluation.get("images") or {}).get("all_cameras") or {}
+    from toolkit.physics.world_checks import to_dataset_frame
+
+    world = module.input.meta.get("world")
+    return {
+        "world": world,
+        "dataset_frame": to_dataset_frame(est, world),  # v0 and gravity in the dataset's own axes
+        "material": est["material"],
+        "curriculum": module.curriculum.schedule_string(module.material.registry_name or None),
+        "parameters": rows,
+        "uncertainty": None if module.uncertainty_result is None else {
+            k: module.uncertainty_result[k] for k in ("level", "noise_std", "dof", "frames", "rollouts", "seconds", "prior_step")},
+        "errors": evaluation.get("errors", {}),
+        "future": {"cd": geo.get("cd_future"), "emd": geo.get("emd_future"), "psnr": img.get("psnr_future"),
+                   "ssim": img.get("ssim_future")},
+        "train": {"cd": geo.get("cd_train"), "emd": geo.get("emd_train"), "psnr": img.get("psnr_train"),
+                  "ssim": img.get("ssim_train")},
+        "timings_s": {k: round(v, 1) for k, v in timings.items()},
+        "report": [str(f) for f in files],
+    }
+
+
+def format_summary(summary: dict) -> str:
+    """A small table of the estimate next to the truth, for terminals."""
+    lines = [f"material {summary['material']}, curriculum {summary['curriculum']}",
+             f"{'parameter':<18}{'estimate':>14}{'truth':>14}  {'90 % interval':<24}label"]
+    from toolkit.physics.uncertainty import format_interval
+
+    for r in summary["parameters"]:
+        est, tru = r["estimate"], r["truth"]
+        fmt = (lambda v: "-" if v is None else (f"{v:.4g}"))  # noqa: E731
+        label = r.get("label") or "-"
+        label += f" ({r['note']})" if r.get("note") else ""
+        lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
+    fut = summary["future"]
+    if fut.get("cd") is not None:
+        lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "
+                     f"SSIM {fut['ssim'] or float('nan'):.3f}")
+    if summary.get("grid_check"):
+        from toolkit.physics.grid_check import format_grid_check
+
+        lines.append(format_grid_check(summary["grid_check"]))
+    lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
+    refined = summary.get("refined")
+    if refined:
+        lines.append(f"--- refined on a grid of half the spacing ({refined['out']}):")
+        lines.append(format_summary(refined["summary"]))
+    return "\n".join(lines)
