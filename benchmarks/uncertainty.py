@@ -41,6 +41,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from toolkit.atomic import write_text  # noqa: E402
+
 THROWS = ("toss", "slide", "lob")
 STIFFNESS = (1e4, 3e4, 1e5, 3e5)
 SHAPES = {"box": {"size_x": 0.12, "size_y": 0.08, "size_z": 0.1}, "sphere": {"radius": 0.05}}
@@ -214,6 +216,9 @@ def main(argv=None) -> int:
     ap.add_argument("--material", default="neo_hookean", choices=["neo_hookean", *OTHER_TRUTHS],
                     help="material family (neo_hookean: E alone with nu fixed; others: every optimizable parameter)")
     args = ap.parse_args(argv)
+    for flag in ("scenes", "jobs", "threads"):
+        if getattr(args, flag) < 1:
+            ap.error(f"--{flag} must be >= 1, got {getattr(args, flag)}")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -245,7 +250,7 @@ def main(argv=None) -> int:
     unc = sum(r["uncertainty_s"] for r in results)
     print(json.dumps({"scenes": len(results), "fit_s": round(fit, 1), "uncertainty_s": round(unc, 2),
                       "uncertainty_fraction": round(unc / max(fit, 1e-9), 4)}))
-    (out / "coverage.md").write_text(table + "\n")
+    write_text(out / "coverage.md", table + "\n")
     return 0
 
 

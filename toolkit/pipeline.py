@@ -28,7 +28,7 @@ import torch
 from toolkit.atomic import CorruptArtifactError, set_aside, write_json
 from toolkit.checkpointing import newest_intact_checkpoint
 from toolkit.errors import UserError
-from toolkit.run_summary import format_summary, run_summary as _summary  # noqa: F401 (re-exported)
+from toolkit.run_summary import format_summary, run_summary  # noqa: F401 (format_summary re-exported)
 
 __all__ = ["RunSettings", "run_pipeline", "load_fitted_module"]
 
@@ -448,7 +448,7 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams,
                          uncertainty=module.uncertainty_result, grid_check=grid)
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
-    summary = _summary(module, evaluation, timings, files)
+    summary = run_summary(module, evaluation, timings, files)
     summary["grid_check"] = grid
     annotate_grid(summary["parameters"], grid, module.estimate()["params"])
     write_json(run / "summary.json", summary)

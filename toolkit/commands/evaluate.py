@@ -44,7 +44,8 @@ def evaluate_run(run_dir: str | Path, render: bool = True, report: bool = True, 
     import torch
 
     from toolkit.evaluation import evaluate_module
-    from toolkit.pipeline import _device, _summary, load_fitted_module
+    from toolkit.pipeline import _device, load_fitted_module
+    from toolkit.run_summary import run_summary
 
     run = Path(run_dir)
     dev = _device(device)
@@ -80,7 +81,7 @@ def evaluate_run(run_dir: str | Path, render: bool = True, report: bool = True, 
                              grid_check=grid)
     timings = {k: float(v) for k, v in (old.get("timings_s") or {}).items() if isinstance(v, (int, float))}
     timings["evaluation_s"] = elapsed
-    summary = _summary(module, evaluation, timings, files or [Path(f) for f in old.get("report", [])])
+    summary = run_summary(module, evaluation, timings, files or [Path(f) for f in old.get("report", [])])
     for key in ("benchmark", "grid_check"):
         if key in old:
             summary[key] = old[key]

@@ -39,7 +39,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.mpm import MPMSimulator
     from toolkit.physics.module import InversePhysicsModule
 
-__all__ = ["subdivide", "grid_shift", "grid_convergence", "judge_grid_shift", "state_key", "format_grid_check", "annotate_grid",
+__all__ = ["subdivide", "grid_shift", "grid_convergence", "check_estimate", "state_key", "format_grid_check", "annotate_grid",
            "GRID_NOTE"]
 
 #: added to the note of each material parameter when the grid check fails
@@ -113,12 +113,12 @@ def state_key(module: "InversePhysicsModule") -> bytes:
 @torch.no_grad()
 def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = None) -> dict:
     """:func:`grid_shift` of a fitted module's estimate over its training frames, judged against
-    the fit's own residual (:func:`judge_grid_shift`).
+    the fit's own residual (:func:`check_estimate`).
 
     The uncertainty step (:mod:`toolkit.physics.uncertainty`) runs the same check at the end of a fit
-    for its grid term and keeps the record on the module (``grid_check_result``, with the
-    :func:`state_key` it was computed at); when the estimate has not moved since, that record is
-    returned instead of simulating again.
+    for its grid term; :func:`check_estimate` keeps the record on the module (``grid_check_result``,
+    with the :func:`state_key` it was computed at), and while the estimate has not moved since, that
+    record is returned instead of simulating again.
 
     Returns:
         the :func:`grid_shift` record (without positions) plus ``residual_m`` (None when no frame
@@ -130,32 +130,40 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
     cached = getattr(module, "grid_check_result", None)
     if cached and cached.get("frames") == n_frames and getattr(module, "grid_check_key", None) == state_key(module):
         return dict(cached)
+    return check_estimate(module, n_frames)[0]
+
+
+@torch.no_grad()
+def check_estimate(module: "InversePhysicsModule", n_frames: Optional[int] = None) -> tuple[dict, Optional[dict]]:
+    """Simulate the module's current estimate on its grid and on one of half the spacing, and judge
+    the shift against the fit's residual (training frames 1..``n_frames``, default all).
+
+    Returns:
+        ``(record, shift)``: the :func:`grid_convergence` record, also kept on the module for it to
+        reuse, and the :func:`grid_shift` record with both trajectories (``positions``,
+        ``fine_positions``); ``shift`` is None and ``record`` is ``{"skipped": reason}`` when the
+        fine grid does not fit in memory or its rollout fails (nothing is kept then).
+    """
     t = time.perf_counter()
+    n_frames = int(n_frames if n_frames is not None else module.input.n_train - 1)
     x0 = (module.particles0 + module.particle_offset).detach()
     args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
     sim = module.simulator
     try:
         with module.substeps_unlogged(), sim.substep_plan_restored():
-            rec = grid_shift(sim, x0, *args, n_frames=n_frames)
+            shift = grid_shift(sim, x0, *args, n_frames=n_frames)
     except (SimulationError, RuntimeError) as err:  # GridTooLargeError, or a device out of memory: the fine grid does not fit
-        return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}
-    return judge_grid_shift(module, rec, n_frames, t)
-
-
-def judge_grid_shift(module: "InversePhysicsModule", rec: dict, n_frames: int, started: float) -> dict:
-    """Compare a :func:`grid_shift` record with the fit's own residual (:func:`surface_residual` of
-    training frames 1..``n_frames``); drops its positions, logs a warning when the grid moves the
-    prediction more than the misfit. ``started``: ``time.perf_counter()`` when the check began."""
-    positions = rec["positions"]
-    rec = {k: v for k, v in rec.items() if k not in ("positions", "fine_positions")}
-    residual = surface_residual(module, positions, range(1, n_frames + 1))
+        return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}, None
+    residual = surface_residual(module, shift["positions"], range(1, n_frames + 1))
     ok = residual is not None and math.isfinite(residual) and residual > 0
+    rec = {k: v for k, v in shift.items() if k not in ("positions", "fine_positions")}
     rec.update({"frames": n_frames, "residual_m": residual if ok else None,
                 "ratio": rec["shift_m"] / residual if ok else None,
-                "converged": bool(rec["shift_m"] <= residual) if ok else None, "seconds": time.perf_counter() - started})
+                "converged": bool(rec["shift_m"] <= residual) if ok else None, "seconds": time.perf_counter() - t})
     if rec["converged"] is False:
         log.warning("%s", format_grid_check(rec))
-    return rec
+    module.grid_check_result, module.grid_check_key = dict(rec), state_key(module)
+    return rec, shift
 
 
 def format_grid_check(rec: Optional[dict]) -> str:

@@ -31,13 +31,10 @@ pipeline runs after the fit.
 
 from __future__ import annotations
 
-import time
 from typing import Optional
 
 import numpy as np
 import torch
-
-from toolkit.mpm.config import SimulationError
 
 __all__ = ["grid_offsets"]
 
@@ -58,26 +55,15 @@ def grid_offsets(module, residuals, jacobian: np.ndarray, s2: float, prior_preci
     Returns:
         ``(delta, record)``: ``delta`` ``(K,)`` raw-space offsets, or None when the fine grid does
         not fit in memory or its rollout fails; ``record`` is the grid check's
-        (:func:`toolkit.physics.grid_check.judge_grid_shift`, or ``{"skipped": reason}``), which
-        is also kept on the module (``grid_check_result``, ``grid_check_key``) for the pipeline's
-        check to reuse.
+        (:func:`toolkit.physics.grid_check.check_estimate`, or ``{"skipped": reason}``), which
+        it keeps on the module for the pipeline's check to reuse.
     """
-    from toolkit.physics.grid_check import grid_shift, judge_grid_shift, state_key
+    from toolkit.physics.grid_check import check_estimate
 
-    started = time.perf_counter()
-    n_frames = int(module.input.n_train - 1)
-    sim = module.simulator
-    x0 = (module.particles0 + module.particle_offset).detach()
-    args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
-    try:
-        with module.substeps_unlogged(), sim.substep_plan_restored():
-            shift = grid_shift(sim, x0, *args, n_frames=n_frames)
-    except (SimulationError, RuntimeError) as err:  # GridTooLargeError, or a device out of memory: the fine grid does not fit
-        rec = {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - started}
+    rec, shift = check_estimate(module)
+    if shift is None:
         return None, rec
     d = (residuals(shift["fine_positions"]) - residuals(shift["positions"])).cpu().numpy()
-    rec = judge_grid_shift(module, shift, n_frames, started)
-    module.grid_check_result, module.grid_check_key = dict(rec), state_key(module)
     if not np.isfinite(d).all():
         return None, rec
     J = np.asarray(jacobian, dtype=np.float64)

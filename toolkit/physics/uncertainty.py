@@ -313,12 +313,12 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
                 grad_data[k] = (ssr[0] - ssr[1]) / (2 * (a + b))
             else:
                 curv[k], grad_data[k] = math.inf, 0.0
-        J_np, r_np = J.cpu().numpy(), r0.cpu().numpy()
+        J_fixed = J.cpu().numpy()  # fixed-match derivatives: the grid term projects onto these
         # re-matching nearest neighbours lets points slide along the surface: the chamfer loss is
         # flatter than the fixed-match residuals say; scale each column to the measured curvature
-        gn = 2 * (J_np ** 2).sum(axis=0)
+        gn = 2 * (J_fixed ** 2).sum(axis=0)
         kappa = np.clip(np.divide(curv, gn, out=np.zeros(K), where=gn > 0), 0.0, 1.0)
-        J_np = J_np * np.sqrt(kappa)
+        J_np = J_fixed * np.sqrt(kappa)
         n_eff = CLUSTERS_PER_FRAME * len(frames)
         dof = max(n_eff - K, 1)
         s2 = max(ssr0 / dof, 1e-30)
@@ -362,7 +362,7 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
 
         for p, v in zip(params, theta):
             p.set(float(v))
-        offsets, grid = grid_offsets(module, residuals, J.cpu().numpy(), s2, prior_prec)
+        offsets, grid = grid_offsets(module, residuals, J_fixed, s2, prior_prec)
         module._cached_positions = None
         rollouts += 2
     out = []
