@@ -34,9 +34,10 @@ def run_stage0(settings, mode: str = "auto") -> dict:
             (see :func:`~toolkit.run_folder.claim_run_folder`).
 
     Returns:
-        ``{"iterations", "n_gaussians", "stage0_s", "last_logged", "files"}``: iterations done,
-        Gaussians at the end, seconds of this call, the last logged ``train/*`` metrics (loss, L1,
-        SSIM, PSNR in dB; empty if none were logged) and the files written.
+        ``{"iterations", "n_gaussians", "stage0_s", "last_logged", "opacity_resets_reverted", "files"}``:
+        iterations done, Gaussians at the end, seconds of this call, the last logged ``train/*``
+        metrics (loss, L1, SSIM, PSNR in dB; empty if none were logged), the opacity resets undone
+        because they faded most of the model (:mod:`toolkit.scene.opacity_reset`) and the files written.
 
     Raises:
         SettingsError: a bad setting or a folder holding another run or stage 0 (nothing written).
@@ -62,6 +63,7 @@ def run_stage0(settings, mode: str = "auto") -> dict:
     stage0_dir = run / "stage0"
     summary = {"iterations": int(module.step), "n_gaussians": int(module.gaussians.n),
                "stage0_s": time.perf_counter() - t, "last_logged": last_logged_metrics(stage0_dir / "logs"),
+               "opacity_resets_reverted": list(module.reset_guard.reverted),
                "files": [str(stage0_dir / "last.ckpt"), str(stage0_dir / "gaussians.ply"), str(stage0_dir / "logs")]}
     write_json(stage0_dir / STAGE0_SUMMARY, summary)
     return summary

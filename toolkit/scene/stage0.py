@@ -58,6 +58,7 @@ from toolkit.settings import DictSettings
 from toolkit.scene.deformation import DeformationConfig, DeformationNetwork
 from toolkit.scene.gaussian_model import DensificationConfig, GaussianModel
 from toolkit.scene.stage0_checkpoint import Stage0Checkpoint
+from toolkit.scene.opacity_reset import OpacityResetGuard
 from toolkit.scene.initialization import (
     camera_extent,
     gic_num_points,
@@ -564,6 +565,7 @@ class Gaussians4DModule(pl.LightningModule):
         self.stop_at: Optional[int] = None
         self.seed = int(seed)
         self._initialized = False
+        self.reset_guard = OpacityResetGuard()  # undoes an opacity reset that would wipe out the model
         self._views: Optional[TrainingViews] = None
 
     @classmethod
@@ -757,6 +759,7 @@ class Gaussians4DModule(pl.LightningModule):
 
         if track:
             if densify_now:
+                self.reset_guard.check(g, [opt_g], s.densification.min_opacity, it)
                 max_px = (
                     s.densification.max_screen_fraction * max(cams.width, cams.height)
                     if it > s.opacity_reset_interval
@@ -766,7 +769,7 @@ class Gaussians4DModule(pl.LightningModule):
                 stats = g.densify_and_prune(s.densification, float(self.extent), [opt_g], max_screen_px=max_px, generator=gen)
                 log.debug("iteration %d: densification %s", it, stats)
             if it > s.warmup and it % s.opacity_reset_interval == 0:
-                g.reset_opacity(s.densification.opacity_reset_value, [opt_g])
+                self.reset_guard.reset(g, [opt_g], s.densification.opacity_reset_value, it)
 
         self.step = step + 1
         if logging_now:
@@ -783,7 +786,8 @@ class Gaussians4DModule(pl.LightningModule):
     # ------------------------------------------------------------------ checkpoints
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["stage0"] = {"step": int(self.step), "n_gaussians": int(self.gaussians.n), "initialized": bool(self._initialized), "version": 1}
+        checkpoint["stage0"] = {"step": int(self.step), "n_gaussians": int(self.gaussians.n), "initialized": bool(self._initialized), "version": 1,
+                                "opacity_resets_disabled": bool(self.reset_guard.disabled), "opacity_resets_reverted": list(self.reset_guard.reverted)}
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         state = checkpoint.get("stage0", {})
@@ -791,6 +795,8 @@ class Gaussians4DModule(pl.LightningModule):
         self.gaussians.resize_(n)
         self.step = int(state.get("step", 0))
         self._initialized = bool(state.get("initialized", True))
+        self.reset_guard = OpacityResetGuard(disabled=bool(state.get("opacity_resets_disabled", False)),
+                                             reverted=list(state.get("opacity_resets_reverted", [])))
         self._views = None
 
 
