@@ -145,3 +145,35 @@ def test_labels_and_summary_rows():
     table = format_summary({"material": "neo_hookean", "curriculum": "S:1", "future": {}, "timings_s": {},
                             "parameters": [dict(r, estimate=2e4, truth=3e4) for r in rows]})
     assert "[1e+04, 5e+04]" in table and "determined" in table and "90 % interval" in table
+
+
+@pytest.mark.slow
+def test_a_refused_prior_step_leaves_no_not_determined_label_away_from_the_prior(toss_input, monkeypatch):
+    """When no step toward the prior lowers the MAP objective (seen at full size on a Newtonian
+    capsule: its viscosity and its v0 along the shaft), the parameters stay at the fit's values, so
+    they cannot be labelled *not determined* (that label promises the prior's value): the falling
+    box blind after frame 1, with the step refused, keeps E at the truth, weakly determined, with a
+    note; its interval is still the wide one of the geometric term."""
+    import dataclasses
+
+    import toolkit.physics.uncertainty as unc_mod
+    from toolkit.physics.uncertainty import estimate_uncertainty
+
+    empty = torch.zeros((0, 3), dtype=toss_input.surfaces[0].dtype)
+    blind = dataclasses.replace(toss_input, surfaces=[s if f <= 1 else empty for f, s in enumerate(toss_input.surfaces)])
+    calls = []
+
+    def refused(module, params, frames, n, theta, *args):
+        calls.append(list(args[-1]))  # the free coordinates
+        return theta, {"taken": False, "objective": [1.0, 1.0]}, 1
+
+    monkeypatch.setattr(unc_mod, "_map_step", refused)
+    res = estimate_uncertainty(toss_module_at_truth(blind)).to_dict()
+    names = [p for p in res["parameters"]]
+    assert calls and names.index("E") in calls[0]  # E was free, so the step was tried on it
+    E = res["parameters"]["E"]
+    assert res["prior_step"]["reason"].startswith("refused")
+    assert E["value"] == pytest.approx(TRUTH["E"], rel=1e-4)
+    assert E["label"] == WEAK and "no step toward its prior" in E["note"]
+    assert E["high"] / E["low"] > 10  # still the geometric term's wide interval
+    assert all(p["label"] != NOT_DETERMINED or "fixed" in p["note"] for p in res["parameters"].values())

@@ -39,7 +39,13 @@ which measures the optimizer rather than the data):
    (re-matched), halving it up to three times, and kept only if the fit's own loss (image and
    geometric terms over every training frame and camera) rises by at most
    :data:`FIT_LOSS_TOLERANCE`: otherwise the images determine what the geometric term leaves free,
-   the fitted values stay, and those parameters are labelled *weakly determined* with a note.
+   the fitted values stay, and those parameters are labelled *weakly determined* with a note. When
+   no step lowers the MAP objective, the re-matched geometric loss itself holds them near the fit
+   (the linear estimate understated it): they stay, and those away from their prior (more than
+   :data:`AT_PRIOR` prior standard deviations) and bounded on at least one side by step 5 are
+   labelled *weakly determined* with a note, so a *not determined* label means the estimate is at
+   its prior. (Seen at full size: a Newtonian capsule's viscosity and its v0 along
+   the shaft, whose geometry is the same under a slide along the axis.)
 7. The grid term (``grid_term``, :mod:`toolkit.physics.grid_term`): the estimate is simulated on a
    grid of half the spacing as well, the change of the residuals is projected onto ``J`` (one
    Gauss-Newton step with the prior), and each interval is widened to cover the estimate shifted
@@ -78,6 +84,9 @@ LABELS = ("determined", "weakly determined", "not determined by this clip")
 #: ratios 0.06-0.15 there (determined), E of a box sliding on a frictionless ground or of a lob that
 #: lands after the fitted frames 0.5-1.0 (not determined).
 DETERMINED_BELOW = 0.2
+#: a parameter within this many prior standard deviations of its prior mean is at its prior (a refused
+#: prior step leaves it labelled not determined there; farther away it is relabelled weakly determined)
+AT_PRIOR = 0.25
 #: posterior std / prior std above this: not determined (the 90 % interval is most of the prior's)
 NOT_DETERMINED_ABOVE = 0.45
 #: prior std in the raw (optimized) space, by material transform: 1 decade for log10 parameters,
@@ -329,6 +338,7 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
         step_info: dict = {"taken": False}
         free = [k for k in range(K) if math.sqrt(max(cov[k, k], 0.0)) / params[k].prior_std > NOT_DETERMINED_ABOVE]
         image_held: dict[int, float] = {}
+        clip_held: set[int] = set()
         if prior_step and free:
             before = theta
             theta, step_info, extra = _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec,
@@ -347,6 +357,10 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
                         f"{100 * rise:.1f} % (> {100 * FIT_LOSS_TOLERANCE:.0f} %), so the images constrain what the "
                         f"geometric term leaves free"))
                     image_held = {k: rise for k in free}
+            else:  # no step toward the prior lowers the MAP objective: the re-matched geometric term objects
+                step_info["reason"] = ("refused: every step toward the prior raised the clip's own geometric loss more than "
+                                       "the prior gained, so the clip holds these parameters where the fit put them")
+                clip_held = set(free)
         elif prior_step:
             step_info = {"taken": False, "reason": "every parameter is determined or weakly determined by the clip"}
         q = float(student_t.ppf(0.5 + level / 2, dof))
@@ -379,6 +393,10 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
             label = LABELS[2] if len(sides) == 2 else LABELS[max(1, LABELS.index(label))]
             note = ("the clip bounds it on neither side within the interval" if len(sides) == 2 else
                     f"the clip bounds it only from {'below' if sides[0] > 0 else 'above'}")
+        if k in clip_held and label == LABELS[2] and len(sides) < 2 and abs(theta[k] - p.prior_mean) > AT_PRIOR * p.prior_std:
+            label = LABELS[1]
+            note = "; ".join(x for x in (note, "the linear estimate calls it free, but no step toward its prior lowers the "
+                                               "clip's loss: the clip holds it near the fit's value") if x)
         if k in image_held:
             label = LABELS[1]
             note = (f"the geometric term leaves it free (interval from it alone), but moving it to its prior "
