@@ -85,3 +85,13 @@ def test_check_without_a_reset_does_nothing():
     with torch.no_grad():
         g.opacity_logits[:] = -8.0
     assert OpacityResetGuard().check(g, opt, DensificationConfig().min_opacity, iteration=10) is None
+
+
+def test_release_drops_the_copy():
+    g, opt = _trained_model()
+    guard = OpacityResetGuard()
+    guard.reset(g, opt, 0.01, iteration=376)
+    guard.release()
+    with torch.no_grad():
+        g.opacity_logits[:] = -8.0
+    assert guard.check(g, opt, 0.005, iteration=1000) is None and not guard.disabled

@@ -15,7 +15,9 @@ If, before the next reset, more than ``max_fade`` of the Gaussians sit below ``m
 densification round, the reset is undone (the copy is restored: parameters, Adam moments and step,
 the densification statistics zeroed) and no further reset happens in the run. The deformation
 network keeps what it learned meanwhile. A healthy reset fades a few percent of the Gaussians
-(floaters), far below the default ``max_fade`` of one half.
+(floaters), far below the default ``max_fade`` of one half. The copy lives in memory only: a run
+resumed between a reset and the next densification round cannot undo that reset (whether resets
+are still allowed is kept in the checkpoint).
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ class OpacityResetGuard:
         self._reset_iteration = int(iteration)
         g.reset_opacity(value, optimizers)
         return True
+
+    def release(self) -> None:
+        """Drop the copy (the densification window is over: nothing is pruned any more)."""
+        self._snapshot = None
 
     @torch.no_grad()
     def check(self, g: GaussianModel, optimizers: Any, min_opacity: float, iteration: int) -> Optional[dict]:

@@ -744,6 +744,8 @@ class Gaussians4DModule(pl.LightningModule):
         self.manual_backward(loss)
 
         track = it < s.densify_until
+        if it == s.densify_until:
+            self.reset_guard.release()
         densify_now = track and it > s.densify_from and it % s.densify_interval == 0
         logging_now = bool(s.log_every) and it % s.log_every == 0
         if (densify_now or logging_now) and not bool(torch.isfinite(loss)):  # these steps sync anyway
