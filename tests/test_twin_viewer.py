@@ -63,7 +63,7 @@ def _screenshot(url: str, path) -> np.ndarray:
     return iio.imread(path)[..., :3].astype(int)
 
 
-def _screenshot_until(url: str, path, ready, tries: int = 4) -> np.ndarray:
+def _screenshot_until(url: str, path, ready, tries: int = 8) -> np.ndarray:
     """A screenshot once ``ready(img)`` holds: the page draws only after its websocket delivered the
     scene, which on a loaded machine can take longer than Chromium's virtual-time budget."""
     for _ in range(tries):

@@ -11,7 +11,8 @@ Every command runs inside :func:`error_boundary`. What it does with an exception
   to resume``: ``KeyboardInterrupt`` and any exception with ``exit_code = 130``
   (:class:`toolkit.checkpointing.RunInterrupted`, raised after the checkpoint is saved);
 * anything else (a bug, a simulation that blew up), exit status 1: one line with the exception's
-  type and message and ``(run with --debug for the traceback)``.
+  type and message and ``(run with --debug for the traceback)``; a GPU out-of-memory error gets a
+  second line saying who holds the card's memory (:mod:`toolkit.device_memory`).
 
 With ``--debug`` the exception propagates unchanged, so Python prints the whole traceback.
 
@@ -100,7 +101,10 @@ def describe_error(err: BaseException) -> tuple[int, str]:
     first = _first_line(err).splitlines()[0]
     if len(first) > 300:
         first = first[:297] + "..."
-    return EXIT_FAILURE, f"{type(err).__name__}: {first} {_DEBUG_HINT}"
+    from toolkit.device_memory import oom_note
+
+    note = oom_note(err)  # a GPU out of memory: who holds it
+    return EXIT_FAILURE, f"{type(err).__name__}: {first} {_DEBUG_HINT}" + (f"\n  {note}" if note else "")
 
 
 def _is_file_problem(err: OSError) -> bool:

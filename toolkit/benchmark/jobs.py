@@ -166,7 +166,10 @@ def execute_job(job: dict) -> dict:
             status, error = "interrupted", f"{type(exc).__name__}: {exc}"
             print(f"job {job['id']} interrupted: {error}", flush=True)
         except Exception as exc:  # noqa: BLE001 - a failed job is recorded, the benchmark goes on
-            status, error = "failed", f"{type(exc).__name__}: {exc}"
+            from toolkit.device_memory import oom_note
+
+            note = oom_note(exc)  # a GPU out of memory: who held it (this job, or the others on its card)
+            status, error = "failed", f"{type(exc).__name__}: {exc}" + (f" [{note}]" if note else "")
             traceback.print_exc()
     wall = time.perf_counter() - t0
     if job["kind"] not in ("generate", "variant"):  # those two are recognised by their files
