@@ -138,9 +138,17 @@ def main() -> None:
         parser.error(f"--budgets must be >= 100 iterations, got {bad}")
     out = pathlib.Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    scene = generate(out, args.family, args.index, args.seed, args.device, args.size)
     if args.generate_only:
+        generate(out, args.family, args.index, args.seed, args.device, args.size)
         return
+    # generate in a child process: Warp's memory pool keeps what the truth simulation took (46 GB of
+    # an H100 for the paper-size round's sand/002) until the process ends, and the fit needs the card
+    gen = [sys.executable, str(pathlib.Path(__file__).resolve()), "--out", str(out), "--family", args.family,
+           "--index", str(args.index), "--seed", str(args.seed), "--device", args.device, "--size", args.size,
+           "--generate-only"]
+    if subprocess.run(gen, cwd=ROOT, check=False).returncode != 0:
+        sys.exit("whole_scene: generating the scene failed (its output is above)")
+    scene = out / "scene"
     for budget in args.budgets:
         line = run_budget(scene, out, args.family, budget, args.device, args.cold_cache, args.run_args)
         print(json.dumps(line), flush=True)
