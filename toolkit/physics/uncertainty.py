@@ -44,8 +44,7 @@ which measures the optimizer rather than the data):
    (the linear estimate understated it): they stay, and those away from their prior (more than
    :data:`AT_PRIOR` prior standard deviations) and bounded on at least one side by step 5 are
    labelled *weakly determined* with a note, so a *not determined* label means the estimate is at
-   its prior. (Seen at full size: a Newtonian capsule's viscosity and its v0 along
-   the shaft, whose geometry is the same under a slide along the axis.)
+   its prior. (Seen at full size: a Newtonian capsule's viscosity, 1.2 decades from its prior.)
 7. The grid term (``grid_term``, :mod:`toolkit.physics.grid_term`): the estimate is simulated on a
    grid of half the spacing as well, the change of the residuals is projected onto ``J`` (one
    Gauss-Newton step with the prior), and each interval is widened to cover the estimate shifted
