@@ -141,8 +141,9 @@ def main() -> None:
     if args.generate_only:
         generate(out, args.family, args.index, args.seed, args.device, args.size)
         return
-    # generate in a child process: Warp's memory pool keeps what the truth simulation took (46 GB of
-    # an H100 for the paper-size round's sand/002) until the process ends, and the fit needs the card
+    # generate in a child process: Warp's memory pool keeps what the truth simulation took until the
+    # process ends, and the fit needs the card (46 GB for sand/002 before deterministic rollouts
+    # stopped capturing graphs; see toolkit.mpm.config.captures_graphs)
     gen = [sys.executable, str(pathlib.Path(__file__).resolve()), "--out", str(out), "--family", args.family,
            "--index", str(args.index), "--seed", str(args.seed), "--device", args.device, "--size", args.size,
            "--generate-only"]

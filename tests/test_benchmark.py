@@ -163,6 +163,27 @@ def test_bad_model_options_stop_the_benchmark_before_any_work(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_only_keeps_the_named_scenes_and_refuses_unknown_names(tmp_path, capsys):
+    """--only picks scenes out of a generated suite's draws (the same draws as without it), and a
+    name outside them stops the benchmark before anything is written."""
+    from toolkit.benchmark.plan import BenchmarkError
+    from toolkit.benchmark.scenes import only_scenes, scenes_to_generate
+    from toolkit.cli import main
+
+    every = scenes_to_generate(tmp_path / "suite", ["newtonian", "sand"], 5, size="small")
+    picked = only_scenes(every, ["sand/002", "newtonian/004"])
+    assert [s.name for s in picked] == ["newtonian/004", "sand/002"]
+    assert [s.generate["spec"] for s in picked] == [s.generate["spec"] for s in every if s.name in ("newtonian/004", "sand/002")]
+    with pytest.raises(BenchmarkError, match=r"\['sand/005'\]"):
+        only_scenes(every, ["sand/005"])
+    args = ["benchmark", "--suite", str(tmp_path / "suite"), "--generate", "--families", "sand", "--per-family", "2",
+            "--size", "small", "--out", str(tmp_path / "bench"), "--only", "sand/002"]
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2 and "sand/002" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 # ------------------------------------------------------------------------------------ tables
 def _rec(scene, strategy, cd, emd, e_err, cams=3, material="neo_hookean"):
     return {"scene": scene, "material": material, "strategy": strategy, "cameras": cams, "curriculum": "X",

@@ -75,6 +75,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--scenes", nargs="+", type=Path, metavar="DIR", help="scene folders of a dataset on disk")
     src.add_argument("--families", nargs="+", metavar="MATERIAL", help="suite families to use (or to generate)")
     src.add_argument("--per-family", type=int, help="scenes per family (to generate, or at most this many of the suite)")
+    src.add_argument("--only", nargs="+", metavar="FAMILY/INDEX",
+                     help="of those scenes, only these (e.g. sand/002 neo_hookean/003): a later round adds scenes "
+                          "to a suite without redoing the rest")
     src.add_argument("--suite-size", choices=["small", "full"], help="size preset of generated scenes (default: --size)")
     src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
     src.add_argument("--suite-overrides", type=json_arg, help="JSON SceneSpec fields for every generated scene")
@@ -163,7 +166,7 @@ def spec_from_args(args: argparse.Namespace):
         parse_strategy,
         scaled_stage0,
     )
-    from toolkit.benchmark.scenes import scenes_from_dirs, scenes_from_suite, scenes_to_generate
+    from toolkit.benchmark.scenes import only_scenes, scenes_from_dirs, scenes_from_suite, scenes_to_generate
 
     if bool(args.suite) == bool(args.scenes):
         raise BenchmarkError("give either --suite DIR or --scenes DIR [DIR ...]")
@@ -180,6 +183,8 @@ def spec_from_args(args: argparse.Namespace):
     else:
         scenes = scenes_from_suite(args.suite, args.families, args.per_family)
         dataset = args.dataset or "synthetic"
+    if args.only:
+        scenes = only_scenes(scenes, args.only)
     options = dict(args.strategy_options)
     strategies = [parse_strategy(s) for s in args.strategies]
     for st in strategies:

@@ -9,7 +9,7 @@ from typing import Optional, Sequence
 
 from toolkit.benchmark.plan import BenchmarkError, SceneEntry, _safe_label
 
-__all__ = ["scenes_from_dirs", "scenes_from_suite", "scenes_to_generate"]
+__all__ = ["only_scenes", "scenes_from_dirs", "scenes_from_suite", "scenes_to_generate"]
 
 
 def scenes_from_suite(suite_dir: str | Path, families: Optional[Sequence[str]] = None,
@@ -62,6 +62,18 @@ def scenes_to_generate(suite_dir: str | Path, families: Sequence[str], per_famil
                                                                                   "size": size, "device": device,
                                                                                   "spec_overrides": dict(spec_overrides or {})}}))
     return out
+
+
+def only_scenes(scenes: Sequence[SceneEntry], names: Sequence[str]) -> list[SceneEntry]:
+    """The entries of ``scenes`` named in ``names`` (``family/index``, e.g. ``sand/002``), in the
+    order of ``scenes``; a name that matches none raises :class:`BenchmarkError` listing the names."""
+    known = {s.name for s in scenes}
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise BenchmarkError(f"--only names {missing}, which are not among this benchmark's scenes: "
+                             f"{', '.join(sorted(known))}")
+    wanted = set(names)
+    return [s for s in scenes if s.name in wanted]
 
 
 def scenes_from_dirs(dirs: Sequence[str | Path], material: Optional[str] = None) -> list[SceneEntry]:

@@ -31,7 +31,7 @@ import torch
 import warp as wp
 
 from materials import Material, get_material
-from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig
+from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig, captures_graphs
 from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
 from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult, TapedChunk
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
@@ -699,9 +699,8 @@ class MPMSimulator:
         return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=requires_grad)
 
     def use_graphs(self) -> bool:
-        """Whether substep chains are captured as graphs (``SimConfig.graphs``: auto = CUDA only)."""
-        mode = self.config.graphs
-        return self.device.startswith("cuda") if mode == "auto" else bool(mode)
+        """Whether substep chains are captured as graphs (see :func:`captures_graphs`)."""
+        return captures_graphs(self.config.graphs, self.device, self.config.deterministic)
 
     def _run_substeps(self, a, b, grid, args, first: int, length: int, status, tracers, graphs: dict | None):
         """Run ``length`` substeps from state ``a`` (frame-local index ``first``); returns the new (a, b).

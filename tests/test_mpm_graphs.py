@@ -1,0 +1,77 @@
+"""When substep chains are captured as Warp graphs, and what a deterministic capture costs.
+
+A captured deterministic launch keeps its sort-reduce scratch for the graph's lifetime, so
+``graphs="auto"`` launches deterministic rollouts one by one (the truth generator's 45 GB, see
+:func:`toolkit.mpm.config.captures_graphs`). The CUDA test measures that memory directly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from tests.mpm_scenes import block
+from toolkit.mpm import MPMSimulator, SimConfig
+from toolkit.mpm.config import captures_graphs
+
+
+@pytest.mark.parametrize("mode,device,deterministic,expected", [
+    ("auto", "cuda:0", False, True),
+    ("auto", "cuda:0", True, False),
+    ("auto", "cpu", False, False),
+    ("auto", "cpu", True, False),
+    (True, "cuda:0", True, True),
+    (True, "cpu", False, True),
+    (False, "cuda:0", False, False),
+])
+def test_which_rollouts_capture_graphs(mode, device, deterministic, expected):
+    assert captures_graphs(mode, device, deterministic) is expected
+
+
+def test_simulator_follows_the_rule():
+    sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, deterministic=True), device="cpu")
+    assert sim.use_graphs() is False
+    sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, graphs=True), device="cpu")
+    assert sim.use_graphs() is True
+
+
+def _rollout(graphs, substeps: int, device: str) -> tuple[MPMSimulator, np.ndarray]:
+    """A deterministic two-frame rollout of a 1728-particle block: the simulator (which owns its
+    captured graphs) and the final positions (N, 3)."""
+    cfg = SimConfig(dx=0.05, substeps=substeps, auto_substeps=False, checkpoint_every=25, graphs=graphs,
+                    deterministic=True)
+    sim = MPMSimulator("neo_hookean", cfg, device=device)
+    x0 = block((12, 12, 12), 0.0125, (0.5, 0.2, 0.5))
+    out = sim.rollout(x0, v0=np.array([0.3, -0.5, 0.1], np.float32), params=sim.material.pack({"E": 2e4, "nu": 0.3}),
+                      n_frames=2)
+    return sim, out.positions[-1].cpu().numpy()
+
+
+def test_deterministic_rollout_runs_launch_by_launch_on_cpu():
+    _, x = _rollout("auto", 20, "cpu")
+    assert x.shape == (1728, 3) and np.isfinite(x).all()
+    assert x[:, 1].mean() < 0.2  # it fell
+
+
+def _memory_taken(graphs, substeps: int) -> tuple[int, np.ndarray]:
+    """Bytes of device memory a deterministic rollout took (free memory before minus after: a
+    graph's allocations are not in the pool's counters), and its final positions."""
+    wp.synchronize_device("cuda:0")
+    before = wp.get_device("cuda:0").free_memory
+    sim, x = _rollout(graphs, substeps, "cuda:0")
+    wp.synchronize_device("cuda:0")
+    taken = before - wp.get_device("cuda:0").free_memory
+    del sim
+    return taken, x
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="measures CUDA device memory")
+def test_deterministic_rollout_memory_does_not_grow_with_captured_substeps():
+    """Captured: scratch for every substep of the frame stays allocated. Launched one by one: the
+    scratch is reused, so far less is taken. Both give bit-identical positions. Measured on an H100
+    at 200 substeps: 533 MB captured, 33.5 MB (one pool block) launched one by one."""
+    captured, x_captured = _memory_taken(True, 400)
+    launched, x_launched = _memory_taken("auto", 400)
+    np.testing.assert_array_equal(x_captured, x_launched)
+    assert captured > 20 * max(launched, 1 << 20), (captured, launched)
