@@ -65,6 +65,26 @@ def test_refined_settings_and_the_shared_stage0(tmp_path):
         RunSettings(scene="scene", refine_grid="yes").validate()
 
 
+def test_auto_refines_on_cuda_only():
+    assert RunSettings(scene="scene").refine_grid == "auto"
+    assert grid_refinement.refines_on("auto", "cuda") and grid_refinement.refines_on("auto", "cuda:1")
+    assert not grid_refinement.refines_on("auto", "cpu")
+    assert grid_refinement.refines_on(True, "cpu") and not grid_refinement.refines_on(False, "cuda")
+
+
+def test_auto_on_cpu_says_how_to_refine_and_fits_nothing(scene, tmp_path, monkeypatch, caplog):
+    import toolkit.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda child, mode: pytest.fail("no refined fit on a CPU under auto"))
+    s = RunSettings(scene=str(scene), out=str(tmp_path / "run"), sim={"dx": 0.04})
+    failed = {"grid_check": {"converged": False, "fine_dx": 0.02, "ratio": 3.2}}
+    est = {"params": {"E": 3e4, "nu": 0.3}, "v0": [0.0, 0.0, 0.0], "gravity": [0.0, -9.8, 0.0], "effects": {}}
+    with caplog.at_level("WARNING", logger="toolkit.grid_refinement"):
+        assert grid_refinement.refine_grid(s, failed, est, "cpu") is None
+    assert "3.2x the fit's misfit" in caplog.text and "--refine-grid" in caplog.text and "0.02 m" in caplog.text
+    assert not (tmp_path / "run" / "refined").exists()
+
+
 def test_the_refined_run_links_the_parent_stage0(scene, tmp_path, monkeypatch):
     """refine_grid links OUT/refined/stage0 to OUT/stage0 after claiming the folder; the pipeline it
     starts is replaced here (its own test is above)."""
@@ -83,3 +103,9 @@ def test_the_refined_run_links_the_parent_stage0(scene, tmp_path, monkeypatch):
     assert link.is_symlink() and os.readlink(link) == os.path.join("..", "stage0")
     assert (link / "last.ckpt").read_text() == "stage 0"
     assert (parent / "refined" / "run.json").is_file()
+    # a benchmark fit's stage 0 is its prepare job's folder, given explicitly
+    elsewhere = tmp_path / "prepare" / "stage0"
+    elsewhere.mkdir(parents=True)
+    s2 = RunSettings(scene=str(scene), out=str(tmp_path / "fit"), geometry="stage0", sim={"dx": 0.04}, refine_grid=True)
+    grid_refinement.refine_grid(s2, {"grid_check": {"converged": False, "fine_dx": 0.02}}, est, "cpu", stage0=elsewhere)
+    assert os.readlink(tmp_path / "fit" / "refined" / "stage0") == os.path.join("..", "..", "prepare", "stage0")

@@ -1,6 +1,7 @@
 """Fit again on a grid of half the spacing when the grid check says the estimate depends on the grid.
 
-``projo4d run --refine-grid`` (``RunSettings.refine_grid``) adds one step after the run: when the
+``RunSettings.refine_grid`` (``projo4d run --refine-grid / --no-refine-grid``; default ``"auto"``:
+on CUDA only) adds one step after the run: when the
 grid check (:mod:`toolkit.physics.grid_check`) finds that halving dx moves the training frames by
 more than the fit's misfit, the physics is fitted again at ``dx / 2`` in the sub-folder
 ``OUT/refined/``, a run folder of its own (its own ``run.json``, ``summary.json`` and report):
@@ -11,11 +12,13 @@ more than the fit's misfit, the physics is fitted again at ``dx / 2`` in the sub
   coarse search on the finer grid), with the parent's curriculum;
 * it is not refined again, whatever its own grid check says.
 
-The refinement costs about 8x the particles and nodes and twice the substeps of the parent's
-physics stage (one full-size elastic scene on an H100: 176 s at dx 0.02 m, 247 s at 0.01 m with two
-runs sharing the card), which is why it is not the default. Why it is worth it where the grid
-check fails: the full-size letter T of the whole-scene benchmark came out 0.60 decades soft in E at
-dx 0.02 m and 0.16 at 0.01 m (``docs/limits.md``).
+The refinement has about 8x the particles and nodes and twice the substeps of the parent's
+physics stage. On a GPU that is not full at dx 0.02 m this costs far less than 8x (one full-size
+elastic scene on an H100: 176 s at dx 0.02 m, 247 s at 0.01 m with two runs sharing the card), so
+``"auto"`` refines on CUDA devices; on a CPU it costs the full 8x, so ``"auto"`` only says that the
+check failed and how to refine (``--refine-grid``). Why it is worth it where the grid check fails:
+the full-size letter T of the whole-scene benchmark came out 0.60 decades soft in E at dx 0.02 m
+and 0.16 at 0.01 m (``docs/limits.md``).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from typing import TYPE_CHECKING, Optional
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.pipeline import RunSettings
 
-__all__ = ["REFINED_FOLDER", "needs_refinement", "refined_settings", "refine_grid"]
+__all__ = ["REFINED_FOLDER", "needs_refinement", "refines_on", "refined_settings", "refine_grid"]
 
 #: the refined run's sub-folder of the run folder
 REFINED_FOLDER = "refined"
@@ -41,6 +44,14 @@ def needs_refinement(summary: dict) -> bool:
     """True when the run's grid check ran and found the estimate grid-dependent (``converged`` False)."""
     grid = summary.get("grid_check") or {}
     return grid.get("converged") is False and bool(grid.get("fine_dx"))
+
+
+def refines_on(setting: bool | str, device: str) -> bool:
+    """Whether ``RunSettings.refine_grid`` refines a run on ``device`` (``"cpu"``, ``"cuda"``,
+    ``"cuda:N"``) once its grid check has failed: ``"auto"`` on CUDA only."""
+    if setting == "auto":
+        return str(device).startswith("cuda")
+    return bool(setting)
 
 
 def refined_settings(s: "RunSettings", estimate: dict, fine_dx: float) -> "RunSettings":
@@ -64,21 +75,28 @@ def refined_settings(s: "RunSettings", estimate: dict, fine_dx: float) -> "RunSe
                                continuum=continuum, refine_grid=False)
 
 
-def refine_grid(s: "RunSettings", summary: dict, estimate: dict) -> Optional[dict]:
-    """Run the refined fit when :func:`needs_refinement` (else None); returns its summary (also in
-    ``s.out/refined/summary.json``). The parent's stage 0 is shared by a link, so it is not trained
-    again."""
+def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "cuda",
+                stage0: Optional[Path] = None) -> Optional[dict]:
+    """Run the refined fit when :func:`needs_refinement` and :func:`refines_on` ``device`` (else
+    None); returns its summary (also in ``s.out/refined/summary.json``). The parent's stage 0
+    (``stage0``, default ``s.out/stage0``; a benchmark fit's is its prepare job's) is shared by a
+    link, so it is not trained again."""
     from toolkit.pipeline import run_pipeline
     from toolkit.run_folder import claim_run_folder
 
     if not needs_refinement(summary):
         return None
+    if not refines_on(s.refine_grid, device):
+        log.warning("the grid check failed: halving dx moves the fitted frames by %.2gx the fit's misfit, so the "
+                    "estimate depends on the grid; `--refine-grid` fits again at dx %g m (about 8x this physics stage "
+                    "on %s)", summary["grid_check"].get("ratio", float("nan")), summary["grid_check"]["fine_dx"], device)
+        return None
     child = refined_settings(s, estimate, summary["grid_check"]["fine_dx"])
     out = Path(child.out)
     claim_run_folder(child, "auto")  # before the link: a folder holding only stage0/ is not a run
-    stage0 = Path(s.out) / "stage0"
+    stage0 = Path(s.out) / "stage0" if stage0 is None else Path(stage0)
     if stage0.is_dir() and not (out / "stage0").exists():
         os.symlink(os.path.relpath(stage0, out), out / "stage0", target_is_directory=True)
-    log.warning("--refine-grid: the grid check failed, fitting again at dx %g m in %s (about 8x the physics stage)",
-                child.sim["dx"], out)
+    log.warning("the grid check failed: fitting again at dx %g m in %s (refine_grid=%s)", child.sim["dx"], out,
+                s.refine_grid)
     return run_pipeline(child, mode="auto")

@@ -109,6 +109,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--downscale", type=int, help="integer image downscale factor")
     size.add_argument("--n-train", type=int, help="training frames (default: the scene's split)")
     size.add_argument("--seed", type=int)
+    size.add_argument("--refine-grid", action=argparse.BooleanOptionalAction, default=None,
+                      help="refit a fit whose grid check fails at half the grid spacing; the table then reports the "
+                           "refined result (default: on CUDA only; see `projo4d run --help`)")
     size.add_argument("--device", choices=["auto", "cpu", "cuda"], help="device of the jobs (default auto)")
     size.add_argument("--renderer", help="renderer name (default auto)")
     size.add_argument("--stage1-iterations", type=int, help="Stage-1 iterations of every strategy that has them (100)")
@@ -197,7 +200,7 @@ def spec_from_args(args: argparse.Namespace):
 
         check_model_options(args.model_options)
     overrides = {}
-    for key in ("geometry", "sim", "model_options", "downscale", "n_train", "seed", "device", "renderer"):
+    for key in ("geometry", "sim", "model_options", "downscale", "n_train", "seed", "device", "renderer", "refine_grid"):
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v

@@ -349,6 +349,17 @@ def _fit(job: dict) -> dict:
                             "diverged": diverged}
     summary["threads"] = threads
     (run / "summary.json").write_text(json.dumps(summary, indent=2))  # with the benchmark fields
+    if s.refine_grid is not False:
+        from toolkit.grid_refinement import refine_grid
+
+        _check_stop()
+        t = time.perf_counter()
+        refined = refine_grid(s, summary, module.estimate(), device, stage0=src.parent / "stage0")
+        if refined is not None:
+            timings["refine_s"] = timings.get("refine_s", 0.0) + time.perf_counter() - t
+            summary["refined"] = {"out": str(run / "refined"), "summary": refined}
+            summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": timings["refine_s"]}
+            (run / "summary.json").write_text(json.dumps(summary, indent=2))
     for old in (physics_dir / "checkpoints").glob("step_*.ckpt"):  # finished: last.ckpt and the stage ends are enough
         old.unlink()
     del module

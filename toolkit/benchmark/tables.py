@@ -40,6 +40,8 @@ import math
 from pathlib import Path
 from typing import Collection, Iterable, Optional, Sequence
 
+from toolkit.grid_refinement import REFINED_FOLDER
+
 __all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
            "write_tables", "mean_std"]
 
@@ -86,12 +88,29 @@ def record_from_run(run_dir: str | Path, meta: Optional[dict] = None) -> Optiona
         run_dir: a pipeline run folder (``summary.json``, ``evaluation/evaluation.json``).
         meta: ``scene``, ``strategy``, ``cameras`` (default: from the summary's ``benchmark``
             section, else the folder names ``.../<scene>/cams<k>/<strategy>``).
+
+    A fit refined on a finer grid (``summary["refined"]``, :mod:`toolkit.grid_refinement`) is
+    recorded by its refined result, the method's final answer; the first fit's metrics and errors
+    are kept under ``coarse``, and the timings add the refinement's.
     """
     run = Path(run_dir)
     sp = run / "summary.json"
     if not sp.is_file():
         return None
     summary = json.loads(sp.read_text())
+    refined = run / REFINED_FOLDER  # by position, not the recorded path: an exported folder has moved
+    if summary.get("refined") and (refined / "summary.json").is_file():
+        first = _record(run, summary, meta)
+        rec = _record(refined, json.loads((refined / "summary.json").read_text()),
+                      {"scene": first["scene"], "strategy": first["strategy"], "cameras": first["cameras"],
+                       **({"variant": first["variant"]} if first.get("variant") else {})})
+        rec.update(optimized=first["optimized"], diverged=first["diverged"], run_dir=str(run),
+                   timings_s=first["timings_s"], coarse={"metrics": first["metrics"], "errors": first["errors"]})
+        return rec
+    return _record(run, summary, meta)
+
+
+def _record(run: Path, summary: dict, meta: Optional[dict]) -> dict:
     ev_path = run / "evaluation" / "evaluation.json"
     ev = json.loads(ev_path.read_text()) if ev_path.is_file() else {}
     bench = summary.get("benchmark") or {}
