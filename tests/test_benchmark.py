@@ -511,6 +511,17 @@ def test_export_bundles_the_results(bench, tmp_path):
     assert all(os.path.getsize(tmp_path / "x" / n) < 16 * 2**20 for n in names)
 
 
+def test_tables_are_exported_before_the_figures_are_drawn(bench, tmp_path, capsys):
+    """A lent machine whose time runs out while the figures are drawn still has the tables out."""
+    capsys.readouterr()
+    assert main(bench["args"] + ["--export", str(tmp_path / "x")]) == 0
+    kinds = [e["event"] for e in _events(capsys.readouterr().out)]
+    first = kinds.index("exported")
+    assert kinds.index("tables") < first < kinds.index("figures") < kinds.index("figures_done")
+    assert kinds.count("exported") == 2 and kinds.index("figures_done") < len(kinds) - 1 - kinds[::-1].index("exported")
+    assert (tmp_path / "x" / "tables.md").is_file()
+
+
 def test_ray_executor_runs_jobs_and_stops_them_at_the_time_limit(tmp_path):
     pytest.importorskip("ray")  # optional extra: projo4d[ray]
     from toolkit.benchmark.runner import RayExecutor, run_jobs

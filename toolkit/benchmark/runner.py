@@ -332,18 +332,28 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         md, _, tables = write_tables(bench, strategies=[s.label for s in spec.strategies], settings=_settings_summary(spec, jobs),
                                      planned=planned, only=fits)
         tables_path = str(md)
-        if figures and tables.get("records"):
-            from toolkit.benchmark.plots import write_figures
-            from toolkit.benchmark.tables import collect_records
-
-            records, _ = collect_records(bench)
-            write_figures(bench, [r for r in records if not r.get("variant")], strategies=[s.label for s in spec.strategies])
         emit("tables", markdown=str(md), rows=sum(len(t["rows"]) for t in tables["tables"]),
              headline=_headline(tables))
     except Exception as exc:  # noqa: BLE001 - the jobs' results are on disk; tables can be redone with --tables-only
         emit("tables_failed", error=f"{type(exc).__name__}: {exc}")
-    if export:
+        tables = {}
+    if export:  # the numbers first: on a lent machine the figures may outlast the time left
         _export(bench, Path(export), emit)
+    if figures and tables.get("records"):
+        t_fig = time.time()
+        try:
+            from toolkit.benchmark.plots import write_figures
+            from toolkit.benchmark.tables import collect_records
+
+            records, _ = collect_records(bench)
+            emit("figures", records=len(records), note="tables are written (and exported); drawing the figures")
+            written = write_figures(bench, [r for r in records if not r.get("variant")],
+                                    strategies=[s.label for s in spec.strategies])
+            emit("figures_done", files=len(written), wall_s=round(time.time() - t_fig, 1))
+        except Exception as exc:  # noqa: BLE001 - the tables stand without the figures
+            emit("figures_failed", error=f"{type(exc).__name__}: {exc}")
+        if export:
+            _export(bench, Path(export), emit)
     complete = counts.get("remaining", 0) == 0 and counts.get("blocked", 0) == 0
     emit("finished", complete=complete, counts=counts, wall_s=round(time.time() - t_start, 1),
          next="rerun the same command to continue" if not complete else None)

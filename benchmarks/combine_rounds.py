@@ -1,0 +1,103 @@
+"""Combine the tables of several benchmark rounds into one table.
+
+A benchmark too large for one machine or one session runs in rounds (``projo4d benchmark
+--only``), each exporting its own ``tables.json`` (with its ``records``), or leaving only its
+benchmark folder (``runs/**/summary.json``, e.g. unpacked from ``results.tar.gz`` when the round
+ended before its export). This script joins them: the records of every round (a ``tables.json``
+or a benchmark folder), plus single runs given by their ``summary.json`` (a
+``projo4d run`` or ``benchmarks/whole_scene.py`` fit of the same scene), then the same tables
+``projo4d benchmark`` writes (``tables.md``, ``tables.json``). A fit present in several rounds
+(same scene, strategy, camera count and variant) is taken from the last one given.
+
+Usage::
+
+    python benchmarks/combine_rounds.py round1/tables.json round2/tables.json \\
+        --summary sand/001=runs/sand_001/summary.json --out docs/results/paper_size/combined
+
+Prints one JSON line: the fits per material and the output paths. Not part of the test run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from toolkit.benchmark.tables import _record, build_tables, tables_markdown  # noqa: E402
+
+
+def _key(rec: dict) -> tuple:
+    return rec["scene"], rec["strategy"], rec.get("cameras"), rec.get("variant")
+
+
+def combine(rounds: list[pathlib.Path], summaries: list[tuple[str, pathlib.Path]], strategy: str = "progressive",
+            cameras: int = 3) -> tuple[list[dict], dict]:
+    """Records of the rounds (later ones win) and of the single-run summaries; and the settings
+    of each round, keyed by its file name."""
+    records: dict[tuple, dict] = {}
+    settings = {}
+    for path in rounds:
+        if path.is_dir():
+            from toolkit.benchmark.tables import collect_records
+
+            found, _ = collect_records(path)
+            if not found:
+                raise SystemExit(f"{path} holds no finished fit (runs/**/summary.json)")
+            settings[str(path)] = {"from": "run folders"}
+            for rec in found:
+                records[_key({k: v for k, v in rec.items() if k != "per_frame"})] = {k: v for k, v in rec.items() if k != "per_frame"}
+            continue
+        data = json.loads(path.read_text())
+        if "records" not in data:
+            raise SystemExit(f"{path} has no 'records': export it with a projo4d benchmark that writes them")
+        settings[str(path)] = data.get("settings") or {}
+        for rec in data["records"]:
+            records[_key(rec)] = rec
+    for scene, path in summaries:
+        summary = json.loads(path.read_text())
+        rec = _record(path.parent, summary, {"scene": scene, "strategy": strategy, "cameras": cameras})
+        rec["run_dir"] = str(path)
+        records[_key(rec)] = rec
+    return sorted(records.values(), key=_key), settings
+
+
+def _summary_arg(text: str) -> tuple[str, pathlib.Path]:
+    scene, sep, path = text.partition("=")
+    p = pathlib.Path(path)
+    if not sep or not scene or not p.is_file():
+        raise argparse.ArgumentTypeError(f"expected SCENE=PATH to a summary.json that exists, got {text!r}")
+    return scene, p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("rounds", nargs="+", type=pathlib.Path,
+                   help="each round's tables.json or benchmark folder, oldest first")
+    p.add_argument("--summary", action="append", type=_summary_arg, default=[], metavar="SCENE=PATH",
+                   help="a single run's summary.json for SCENE (family/index), e.g. sand/001=run/summary.json")
+    p.add_argument("--strategy", default="progressive", help="strategy label of the --summary runs")
+    p.add_argument("--out", type=pathlib.Path, required=True, help="folder for tables.md and tables.json")
+    p.add_argument("--title", default="Strategy comparison (combined rounds)")
+    args = p.parse_args(argv)
+    for path in args.rounds:
+        if not path.exists():
+            p.error(f"{path} does not exist")
+    records, settings = combine(args.rounds, args.summary, args.strategy)
+    tables = build_tables(records, settings={"rounds": settings, "single runs": {s: str(f) for s, f in args.summary}})
+    tables["records"] = records
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "tables.md").write_text(tables_markdown(tables, args.title))
+    (args.out / "tables.json").write_text(json.dumps(tables, indent=2))
+    per_material: dict[str, int] = {}
+    for r in records:
+        per_material[r["material"]] = per_material.get(r["material"], 0) + 1
+    print(json.dumps({"benchmark": "combine_rounds", "fits": per_material, "tables": str(args.out / "tables.md")}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
