@@ -81,7 +81,7 @@ def test_auto_on_cpu_says_how_to_refine_and_fits_nothing(scene, tmp_path, monkey
     est = {"params": {"E": 3e4, "nu": 0.3}, "v0": [0.0, 0.0, 0.0], "gravity": [0.0, -9.8, 0.0], "effects": {}}
     with caplog.at_level("WARNING", logger="toolkit.grid_refinement"):
         assert grid_refinement.refine_grid(s, failed, est, "cpu") is None
-    assert "3.2x the fit's misfit" in caplog.text and "--refine-grid" in caplog.text and "0.02 m" in caplog.text
+    assert "--refine-grid" in caplog.text and "0.02 m" in caplog.text and "cpu" in caplog.text
     assert not (tmp_path / "run" / "refined").exists()
 
 

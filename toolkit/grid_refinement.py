@@ -87,9 +87,8 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     if not needs_refinement(summary):
         return None
     if not refines_on(s.refine_grid, device):
-        log.warning("the grid check failed: halving dx moves the fitted frames by %.2gx the fit's misfit, so the "
-                    "estimate depends on the grid; `--refine-grid` fits again at dx %g m (about 8x this physics stage "
-                    "on %s)", summary["grid_check"].get("ratio", float("nan")), summary["grid_check"]["fine_dx"], device)
+        log.warning("`--refine-grid` would fit again at dx %g m from this estimate (not by default on %s: about 8x "
+                    "this physics stage)", summary["grid_check"]["fine_dx"], device)
         return None
     child = refined_settings(s, estimate, summary["grid_check"]["fine_dx"])
     out = Path(child.out)
