@@ -70,8 +70,10 @@ def _memory_taken(graphs, substeps: int) -> tuple[int, np.ndarray]:
 def test_deterministic_rollout_memory_does_not_grow_with_captured_substeps():
     """Captured: scratch for every substep of the frame stays allocated. Launched one by one: the
     scratch is reused, so far less is taken. Both give bit-identical positions. Measured on an H100
-    at 200 substeps: 533 MB captured, 33.5 MB (one pool block) launched one by one."""
+    at 200 substeps: 533 MB captured, 33.5 MB (one pool block) launched one by one; at 400 the
+    captured graphs should hold about twice that. Free memory is the measure, so the card must not
+    be shared with other processes while this runs."""
     captured, x_captured = _memory_taken(True, 400)
     launched, x_launched = _memory_taken("auto", 400)
     np.testing.assert_array_equal(x_captured, x_launched)
-    assert captured > 20 * max(launched, 1 << 20), (captured, launched)
+    assert captured > 10 * max(launched, 1 << 20), (captured, launched)
