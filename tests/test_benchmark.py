@@ -428,9 +428,9 @@ def test_a_fit_whose_grid_check_fails_is_refined_and_recorded_by_its_refined_res
     from toolkit.benchmark.tables import record_from_run
 
     # the verdict is the fit's (shift against misfit); a 7-iteration fit's is not at stake here
-    monkeypatch.setattr(grid_refinement, "needs_refinement", lambda summary: summary["grid_check"]["dx"] == 0.04)
+    monkeypatch.setattr(grid_refinement, "needs_refinement", lambda summary: summary["grid_check"]["dx"] == 0.08)
     spec = BenchmarkSpec(scenes_from_suite(suite)[:1], ["progressive"], size="small",
-                         overrides={"geometry": "oracle", "sim": {"dx": 0.04, "substeps": 30}, "device": "cpu",
+                         overrides={"geometry": "oracle", "sim": {"dx": 0.08, "substeps": 15}, "device": "cpu",
                                     "refine_grid": True},
                          iterations={"stage1_iterations": 3, "stage2_iterations": 4}, periodic_eval=None)
     done = run_benchmark(spec, tmp_path / "b", executor="inline", echo=lambda e: None, figures=False)
@@ -438,12 +438,15 @@ def test_a_fit_whose_grid_check_fails_is_refined_and_recorded_by_its_refined_res
     run = tmp_path / "b" / "runs" / "neo_hookean" / "000" / "cams3" / "progressive"
     parent = json.loads((run / "summary.json").read_text())
     child = json.loads((run / "refined" / "summary.json").read_text())
-    assert child["grid_check"]["dx"] == pytest.approx(0.02) and parent["timings_s"]["refine_s"] > 0
+    assert child["grid_check"]["dx"] == pytest.approx(0.04) and parent["timings_s"]["refine_s"] > 0
     assert not (run / "refined" / "stage0").exists()  # oracle geometry: no stage 0 to share (linking: test_grid_refinement)
     rec = record_from_run(run)
     assert rec["errors"]["E"] == pytest.approx(child["errors"]["error/E"])
     assert rec["coarse"]["errors"]["E"] != rec["errors"]["E"]
     assert rec["strategy"] == "progressive" and rec["run_dir"] == str(run) and rec["optimized"] == ["E", "nu"]
+    marker = json.loads((run / "job.json").read_text())  # the event log's result names both fits
+    assert marker["result"]["refined"]["errors"]["E"] == pytest.approx(rec["errors"]["E"])
+    assert marker["result"]["errors"]["E"] == pytest.approx(rec["coarse"]["errors"]["E"])
 
 
 def test_changed_settings_are_refused_unless_redone(bench, capsys):

@@ -349,6 +349,7 @@ def _fit(job: dict) -> dict:
                             "diverged": diverged}
     summary["threads"] = threads
     (run / "summary.json").write_text(json.dumps(summary, indent=2))  # with the benchmark fields
+    refined = None
     if s.refine_grid is not False:
         from toolkit.grid_refinement import refine_grid
 
@@ -369,4 +370,7 @@ def _fit(job: dict) -> dict:
     return {"cd": fut.get("cd"), "emd": fut.get("emd"), "psnr": fut.get("psnr"), "ssim": fut.get("ssim"),
             "errors": {k.split("/", 1)[-1]: v for k, v in (summary.get("errors") or {}).items() if isinstance(v, (int, float))},
             "curriculum": summary["curriculum"], "timings_s": {k: round(v, 1) for k, v in timings.items()},
-            "diverged": diverged, "threads": threads}
+            "diverged": diverged, "threads": threads,
+            **({"refined": {"cd": (refined.get("future") or {}).get("cd"), "errors": {
+                k.split("/", 1)[-1]: v for k, v in (refined.get("errors") or {}).items() if isinstance(v, (int, float))}}}
+               if refined else {})}
