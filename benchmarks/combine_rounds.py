@@ -27,7 +27,7 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from toolkit.benchmark.tables import _record, build_tables, tables_markdown  # noqa: E402
+from toolkit.benchmark.tables import collect_records, record_from_summary, write_records_tables  # noqa: E402
 
 
 def _key(rec: dict) -> tuple:
@@ -42,24 +42,20 @@ def combine(rounds: list[pathlib.Path], summaries: list[tuple[str, pathlib.Path]
     settings = {}
     for path in rounds:
         if path.is_dir():
-            from toolkit.benchmark.tables import collect_records
-
             found, _ = collect_records(path)
             if not found:
                 raise SystemExit(f"{path} holds no finished fit (runs/**/summary.json)")
             settings[str(path)] = {"from": "run folders"}
-            for rec in found:
-                records[_key({k: v for k, v in rec.items() if k != "per_frame"})] = {k: v for k, v in rec.items() if k != "per_frame"}
-            continue
-        data = json.loads(path.read_text())
-        if "records" not in data:
-            raise SystemExit(f"{path} has no 'records': export it with a projo4d benchmark that writes them")
-        settings[str(path)] = data.get("settings") or {}
-        for rec in data["records"]:
+        else:
+            data = json.loads(path.read_text())
+            if "records" not in data:
+                raise SystemExit(f"{path} has no 'records': export it with a projo4d benchmark that writes them")
+            settings[str(path)], found = data.get("settings") or {}, data["records"]
+        for rec in found:
             records[_key(rec)] = rec
     for scene, path in summaries:
         summary = json.loads(path.read_text())
-        rec = _record(path.parent, summary, {"scene": scene, "strategy": strategy, "cameras": cameras})
+        rec = record_from_summary(path.parent, summary, {"scene": scene, "strategy": strategy, "cameras": cameras})
         rec["run_dir"] = str(path)
         records[_key(rec)] = rec
     return sorted(records.values(), key=_key), settings
@@ -87,11 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             p.error(f"{path} does not exist")
     records, settings = combine(args.rounds, args.summary, args.strategy)
-    tables = build_tables(records, settings={"rounds": settings, "single runs": {s: str(f) for s, f in args.summary}})
-    tables["records"] = records
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "tables.md").write_text(tables_markdown(tables, args.title))
-    (args.out / "tables.json").write_text(json.dumps(tables, indent=2))
+    write_records_tables(records, args.out, settings={"rounds": settings, "single runs": {s: str(f) for s, f in args.summary}},
+                         title=args.title)
     per_material: dict[str, int] = {}
     for r in records:
         per_material[r["material"]] = per_material.get(r["material"], 0) + 1

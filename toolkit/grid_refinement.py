@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Optional
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.pipeline import RunSettings
 
-__all__ = ["REFINED_FOLDER", "needs_refinement", "refines_on", "refined_settings", "refine_grid"]
+__all__ = ["REFINED_FOLDER", "needs_refinement", "refines_on", "refined_settings", "refine_grid", "refine_after_fit"]
 
 #: the refined run's sub-folder of the run folder
 REFINED_FOLDER = "refined"
@@ -99,3 +99,22 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     log.warning("the grid check failed: fitting again at dx %g m in %s (refine_grid=%s)", child.sim["dx"], out,
                 s.refine_grid)
     return run_pipeline(child, mode="auto")
+
+
+def refine_after_fit(s: "RunSettings", summary: dict, estimate: dict, device: str, run: Path,
+                     stage0: Optional[Path] = None) -> Optional[dict]:
+    """:func:`refine_grid` for a finished fit in ``run`` (``projo4d run`` and a benchmark fit alike):
+    when a refined fit ran, ``summary`` gains ``refined`` (its folder and summary) and
+    ``timings_s.refine_s``, and is written again to ``run/summary.json`` (atomically). Returns the
+    refined summary, or None."""
+    import time
+
+    from toolkit.atomic import write_json
+
+    t = time.perf_counter()
+    refined = refine_grid(s, summary, estimate, device, stage0=stage0)
+    summary["refined"] = None if refined is None else {"out": str(run / REFINED_FOLDER), "summary": refined}
+    if refined is not None:
+        summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": time.perf_counter() - t}
+    write_json(run / "summary.json", summary)
+    return refined

@@ -400,12 +400,10 @@ def _run_steps(s: RunSettings) -> dict:
     summary["threads"] = threads.to_dict()
     write_json(run / "summary.json", summary)
     if s.refine_grid is not False:
-        from toolkit.grid_refinement import refine_grid
+        from toolkit.grid_refinement import refine_after_fit
 
         _stop_if_interrupted("after the run (its summary is saved); the refined fit is next")
-        refined = refine_grid(s, summary, module.estimate(), device)
-        summary["refined"] = None if refined is None else {"out": str(run / "refined"), "summary": refined}
-        write_json(run / "summary.json", summary)
+        refine_after_fit(s, summary, module.estimate(), device, run)
     return summary
 
 

@@ -279,6 +279,7 @@ def _link_input(src: Path, dst: Path) -> None:
 def _fit(job: dict) -> dict:
     import torch
 
+    from toolkit.atomic import write_json
     from toolkit.physics.fit import default_callbacks, fit_physics
     from toolkit.pipeline import RunSettings, _accelerator, _device, _restore_finished_fit, evaluate_and_report, make_physics_module
 
@@ -348,19 +349,15 @@ def _fit(job: dict) -> dict:
                             "iterations": module.total_iterations, "n_particles": int(module.particles0.shape[0]),
                             "diverged": diverged}
     summary["threads"] = threads
-    (run / "summary.json").write_text(json.dumps(summary, indent=2))  # with the benchmark fields
+    write_json(run / "summary.json", summary)  # with the benchmark fields
     refined = None
     if s.refine_grid is not False:
-        from toolkit.grid_refinement import refine_grid
+        from toolkit.grid_refinement import refine_after_fit
 
         _check_stop()
-        t = time.perf_counter()
-        refined = refine_grid(s, summary, module.estimate(), device, stage0=src.parent / "stage0")
+        refined = refine_after_fit(s, summary, module.estimate(), device, run, stage0=src.parent / "stage0")
         if refined is not None:
-            timings["refine_s"] = timings.get("refine_s", 0.0) + time.perf_counter() - t
-            summary["refined"] = {"out": str(run / "refined"), "summary": refined}
-            summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": timings["refine_s"]}
-            (run / "summary.json").write_text(json.dumps(summary, indent=2))
+            timings["refine_s"] = summary["timings_s"]["refine_s"]
     for old in (physics_dir / "checkpoints").glob("step_*.ckpt"):  # finished: last.ckpt and the stage ends are enough
         old.unlink()
     del module
@@ -368,9 +365,11 @@ def _fit(job: dict) -> dict:
         torch.cuda.empty_cache()
     fut = summary["future"]
     return {"cd": fut.get("cd"), "emd": fut.get("emd"), "psnr": fut.get("psnr"), "ssim": fut.get("ssim"),
-            "errors": {k.split("/", 1)[-1]: v for k, v in (summary.get("errors") or {}).items() if isinstance(v, (int, float))},
-            "curriculum": summary["curriculum"], "timings_s": {k: round(v, 1) for k, v in timings.items()},
-            "diverged": diverged, "threads": threads,
-            **({"refined": {"cd": (refined.get("future") or {}).get("cd"), "errors": {
-                k.split("/", 1)[-1]: v for k, v in (refined.get("errors") or {}).items() if isinstance(v, (int, float))}}}
-               if refined else {})}
+            "errors": _errors(summary), "curriculum": summary["curriculum"],
+            "timings_s": {k: round(v, 1) for k, v in timings.items()}, "diverged": diverged, "threads": threads,
+            **({"refined": {"cd": (refined.get("future") or {}).get("cd"), "errors": _errors(refined)}} if refined else {})}
+
+
+def _errors(summary: dict) -> dict:
+    """A summary's numeric parameter errors keyed by parameter name (``error/E`` -> ``E``)."""
+    return {k.split("/", 1)[-1]: v for k, v in (summary.get("errors") or {}).items() if isinstance(v, (int, float))}

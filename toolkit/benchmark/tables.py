@@ -43,7 +43,7 @@ from typing import Collection, Iterable, Optional, Sequence
 from toolkit.grid_refinement import REFINED_FOLDER
 
 __all__ = ["METRICS", "PARAM_LABELS", "record_from_run", "collect_records", "build_tables", "tables_markdown",
-           "write_tables", "mean_std"]
+           "write_tables", "write_records_tables", "record_from_summary", "mean_std"]
 
 #: metric key -> (label, better: "lower"/"higher", decimals)
 METRICS: dict[str, tuple[str, str, int]] = {
@@ -100,17 +100,21 @@ def record_from_run(run_dir: str | Path, meta: Optional[dict] = None) -> Optiona
     summary = json.loads(sp.read_text())
     refined = run / REFINED_FOLDER  # by position, not the recorded path: an exported folder has moved
     if summary.get("refined") and (refined / "summary.json").is_file():
-        first = _record(run, summary, meta)
-        rec = _record(refined, json.loads((refined / "summary.json").read_text()),
+        first = record_from_summary(run, summary, meta)
+        rec = record_from_summary(refined, json.loads((refined / "summary.json").read_text()),
                       {"scene": first["scene"], "strategy": first["strategy"], "cameras": first["cameras"],
                        **({"variant": first["variant"]} if first.get("variant") else {})})
         rec.update(optimized=first["optimized"], diverged=first["diverged"], run_dir=str(run),
                    timings_s=first["timings_s"], coarse={"metrics": first["metrics"], "errors": first["errors"]})
         return rec
-    return _record(run, summary, meta)
+    return record_from_summary(run, summary, meta)
 
 
-def _record(run: Path, summary: dict, meta: Optional[dict]) -> dict:
+def record_from_summary(run: Path, summary: dict, meta: Optional[dict] = None) -> dict:
+    """The record of one fit from its ``summary`` (already read) and, when present, its run folder
+    ``run``'s ``evaluation/evaluation.json`` (per-frame curves, held-out images). ``meta``: see
+    :func:`record_from_run`. A summary without its folder (e.g. one kept in the docs) gives a
+    record without those."""
     ev_path = run / "evaluation" / "evaluation.json"
     ev = json.loads(ev_path.read_text()) if ev_path.is_file() else {}
     bench = summary.get("benchmark") or {}
@@ -440,11 +444,26 @@ def write_tables(bench_dir: str | Path, out_dir: Optional[str | Path] = None, st
         The two paths and the tables dict.
     """
     records, failures = collect_records(bench_dir, only)
+    return write_records_tables(records, Path(out_dir) if out_dir else Path(bench_dir) / "tables", strategies, failures,
+                                settings, planned, title)
+
+
+def write_records_tables(records: Sequence[dict], out_dir: str | Path, strategies: Optional[Sequence[str]] = None,
+                         failures: Sequence[dict] = (), settings: Optional[dict] = None, planned: Optional[dict] = None,
+                         title: str = "Strategy comparison") -> tuple[Path, Path, dict]:
+    """:func:`build_tables` of ``records`` written atomically as ``out_dir/tables.md`` and
+    ``out_dir/tables.json`` (the latter with the records, less their per-frame curves).
+
+    Returns:
+        The two paths and the tables dict.
+    """
+    from toolkit.atomic import write_json, write_text
+
     tables = build_tables(records, strategies, failures, settings, planned)
     tables["records"] = [{k: v for k, v in r.items() if k != "per_frame"} for r in records]
-    out = Path(out_dir) if out_dir else Path(bench_dir) / "tables"
+    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     md, js = out / "tables.md", out / "tables.json"
-    md.write_text(tables_markdown(tables, title))
-    js.write_text(json.dumps(tables, indent=2))
+    write_text(md, tables_markdown(tables, title))
+    write_json(js, tables)
     return md, js, tables

@@ -1,0 +1,59 @@
+"""benchmarks/combine_rounds.py: rounds of a benchmark joined into one table (later rounds win)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("combine_rounds", ROOT / "benchmarks" / "combine_rounds.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _rec(scene, e_err, cd):
+    return {"scene": scene, "material": "neo_hookean", "strategy": "progressive", "cameras": 3, "curriculum": "X",
+            "metrics": {"cd": cd, "emd": 0.01}, "errors": {"E": e_err, "v0": 0.01}, "optimized": ["E"]}
+
+
+def test_rounds_are_joined_and_a_later_round_replaces_a_fit(tmp_path, capsys):
+    one, two = tmp_path / "one.json", tmp_path / "two.json"
+    one.write_text(json.dumps({"settings": {"size": "full"}, "records": [_rec("neo_hookean/000", 0.6, 1.0),
+                                                                        _rec("neo_hookean/001", 0.2, 2.0)]}))
+    two.write_text(json.dumps({"settings": {}, "records": [_rec("neo_hookean/001", 0.1, 3.0)]}))  # a redo of /001
+    summary = tmp_path / "run" / "summary.json"
+    summary.parent.mkdir()
+    summary.write_text(json.dumps({"material": "neo_hookean", "future": {"cd": 5.0, "emd": 0.02},
+                                   "errors": {"error/E": 0.3, "error/v0": 0.02}}))
+    mod = _script()
+    assert mod.main([str(one), str(two), "--summary", f"neo_hookean/002={summary}", "--out", str(tmp_path / "out")]) == 0
+    tables = json.loads((tmp_path / "out" / "tables.json").read_text())
+    by_scene = {r["scene"]: r for r in tables["records"]}
+    assert sorted(by_scene) == ["neo_hookean/000", "neo_hookean/001", "neo_hookean/002"]
+    assert by_scene["neo_hookean/001"]["errors"]["E"] == 0.1 and by_scene["neo_hookean/002"]["metrics"]["cd"] == 5.0
+    (row,) = tables["tables"][0]["rows"]
+    assert row["n"] == 3 and row["values"]["mae:E"]["mean"] == pytest.approx((0.6 + 0.1 + 0.3) / 3)
+    assert row["values"]["cd"]["mean"] == pytest.approx((1.0 + 3.0 + 5.0) / 3)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["fits"] == {"neo_hookean": 3}
+
+
+def test_bad_inputs_are_named(tmp_path, capsys):
+    mod = _script()
+    with pytest.raises(SystemExit) as stop:
+        mod.main([str(tmp_path / "missing.json"), "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2 and "missing.json does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        mod.main([str(tmp_path), "--summary", "sand/001=nowhere.json", "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2 and "SCENE=PATH" in capsys.readouterr().err
+    no_records = tmp_path / "t.json"
+    no_records.write_text("{}")
+    with pytest.raises(SystemExit, match="has no 'records'"):
+        mod.main([str(no_records), "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
