@@ -269,6 +269,9 @@ def test_truth_is_finer_than_the_fitting_defaults(tiny_scene):
     default = SceneSpec()
     assert default.dx < fit.dx and default.spacing < fit.dx / 2 and default.substeps > fit.substeps
     assert SceneSpec.preset("full").dx == default.dx
+    # no fit refined by halving (0.02 -> 0.01 -> 0.005 m) lands on the truth's own lattice
+    ratio = math.log2(fit.dx / default.dx)
+    assert abs(ratio - round(ratio)) > 0.1, f"truth dx {default.dx} is a power-of-two refinement of the fit's {fit.dx}"
     spec, root = tiny_scene
     sim = read_pac_nerf(root).ground_truth.extra["simulation"]
     assert sim["fit_defaults"] == {"dx": fit.dx, "substeps": fit.substeps}

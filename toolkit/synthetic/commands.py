@@ -132,7 +132,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     video.add_argument("--supersample", type=int, help="ray samples per pixel side (default 2)")
     video.add_argument("--no-ground", action="store_true", help="do not render the ground plane")
     truth = p.add_argument_group("truth resolution")
-    truth.add_argument("--dx", type=float, help="grid spacing, metres (preset: full 0.01, small 0.02)")
+    truth.add_argument("--dx", type=float, help="grid spacing, metres (preset: full 0.008, small 0.02)")
     truth.add_argument("--particle-spacing", type=float, help="metres (default dx/2)")
     truth.add_argument("--substeps", type=int, help="minimum substeps per frame (default 200)")
     _common(p, SIZE_PRESETS)

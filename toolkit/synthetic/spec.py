@@ -1,9 +1,13 @@
 """What a synthetic scene is made of: :class:`SceneSpec`, its size presets, and its validation.
 
 The truth is simulated FINER than any fit by default (DESIGN section 8): grid spacing
-``dx = 0.01`` m (half the fitting default ``SimConfig().dx = 0.02``), particles at ``dx / 2``
-spacing (8x as many as a fit at its default), and 200 substeps per frame (twice the fitting
-default 100; more when :meth:`MPMSimulator.stable_substeps` or the viscous limit asks for it).
+``dx = 0.008`` m (2.5x finer than the fitting default ``SimConfig().dx = 0.02``), particles at
+``dx / 2`` spacing (about 16x as many as a fit at its default), and 200 substeps per frame (twice
+the fitting default 100; more when :meth:`MPMSimulator.stable_substeps` or the viscous limit asks
+for it). The truth's grid is deliberately *not* a power-of-two refinement of the fitting grid: a
+fit refined to half its spacing (``--refine-grid``, 0.01 m) would otherwise run on the truth's own
+lattice and recover the truth exactly, which no real capture allows (an inverse crime; scenes
+generated before 2026-11-26 used 0.01 m).
 The ``small`` preset (CPU-sized, for tests and demos) uses ``dx = 0.02``, i.e. the fitting
 default: fits of small scenes should use a coarser grid (``ground_truth.json`` records the
 settings, and ``simulation.finer_than_fit_defaults`` says where the truth is finer).
@@ -24,7 +28,7 @@ SURFACE_MOTIONS = ("particles", "tracers")
 
 #: preset name -> SceneSpec fields. ``full`` is PAC-NeRF scale, ``small`` runs on a laptop CPU in seconds.
 SIZE_PRESETS: dict[str, dict[str, Any]] = {
-    "full": dict(width=400, height=400, n_frames=20, n_train_frames=14, n_cameras=11, dx=0.01, substeps=200),
+    "full": dict(width=400, height=400, n_frames=20, n_train_frames=14, n_cameras=11, dx=0.008, substeps=200),
     "small": dict(width=64, height=64, n_frames=10, n_train_frames=7, n_cameras=10, dx=0.02, substeps=200),
 }
 
@@ -117,7 +121,7 @@ class SceneSpec:
     azimuth_offset_deg: float = 0.0
     supersample: int = 2
     ground_plane: bool = True
-    dx: float = 0.01
+    dx: float = 0.008
     particle_spacing: Optional[float] = None
     substeps: int = 200
     mesh_edge: Optional[float] = None

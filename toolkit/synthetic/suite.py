@@ -31,7 +31,7 @@ ground around frame 5) at a horizontal speed of 0.3-1.5 m/s in a random directio
 vertical speed in [-1.0, 0.5] m/s; gravity (0, -9.8, 0); sticky ground; no extra effects.
 
 Sizes: ``full`` = PAC-NeRF scale (400x400, 11 cameras, 20 frames = 14 training + 6 future,
-truth dx 0.01 m); ``small`` = CPU scale (64x64, 10 cameras, 10 frames = 7 + 3, truth dx 0.02 m,
+truth dx 0.008 m); ``small`` = CPU scale (64x64, 10 cameras, 10 frames = 7 + 3, truth dx 0.02 m,
 about 1-4k particles).
 """
 
