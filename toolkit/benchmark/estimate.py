@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 __all__ = ["DeviceProfile", "PROFILES", "Calibration", "estimate_job", "scene_info", "format_seconds", "simulate_schedule",
-           "sharing_slowdown"]
+           "sharing_slowdown", "refinement_estimate", "fit_may_refine"]
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,9 @@ class DeviceProfile:
         emd_frame: one exact EMD (2048 points) and Chamfer distance.
         image_metric_per_mpix: PSNR + SSIM of one image, per megapixel.
         generate_per_frame: simulating and rendering one frame of a synthetic scene (all cameras).
+        refine_factor: a fit refined at half the grid spacing (``--refine-grid``) costs this many
+            times the first fit's work (measured: 1.4x on an H100, about 8x on 2 CPU cores;
+            ``docs/limits.md``).
     """
 
     name: str
@@ -51,6 +54,7 @@ class DeviceProfile:
     emd_frame: float
     image_metric_per_mpix: float
     generate_per_frame: float
+    refine_factor: float = 1.4
 
 
 PROFILES: dict[str, DeviceProfile] = {
@@ -64,7 +68,8 @@ PROFILES: dict[str, DeviceProfile] = {
     # 2 shared cores, one torch thread per worker (tests, tutorials)
     "cpu": DeviceProfile("cpu", startup=8.0, stage0_base=0.02, stage0_per_mpix=8.0, continuum=5.0,
                          substep_base=2.0e-4, substep_per_kparticle=4.0e-4, backward_factor=3.0, view_per_mpix=2.0,
-                         iteration_overhead=0.01, emd_frame=0.35, image_metric_per_mpix=0.5, generate_per_frame=0.5),
+                         iteration_overhead=0.01, emd_frame=0.35, image_metric_per_mpix=0.5, generate_per_frame=0.5,
+                         refine_factor=8.0),
 }
 
 #: seconds per history record written into each physics checkpoint (the history grows with the fit)
@@ -163,6 +168,25 @@ def estimate_job(job: dict, info: dict, profile: DeviceProfile, n_particles: Opt
     # final evaluation: rollout, CD/EMD per frame, every camera rendered and scored
     total += rollout + T * p.emd_frame + C * T * (p.view_per_mpix / 3 + p.image_metric_per_mpix) * mpix + 5.0
     return total
+
+
+def fit_may_refine(job: dict, profile: DeviceProfile) -> bool:
+    """Whether a fit job refits at half the grid spacing when its grid check fails: its
+    ``refine_grid`` setting is true, or ``auto`` (the default) on a CUDA profile
+    (:func:`toolkit.grid_refinement.refines_on`)."""
+    if job.get("kind") != "fit":
+        return False
+    refine = job.get("settings", {}).get("refine_grid", "auto")
+    return refine is True or (refine == "auto" and profile.name == "cuda")
+
+
+def refinement_estimate(job: dict, info: dict, profile: DeviceProfile, n_particles: Optional[int] = None) -> float:
+    """Model estimate (seconds) of the refined fit a fit job adds when its grid check fails (0 when
+    it cannot refine, :func:`fit_may_refine`): the fit's work again, times ``profile.refine_factor``
+    (the process, its start-up and stage 0 are shared)."""
+    if not fit_may_refine(job, profile):
+        return 0.0
+    return max(0.0, estimate_job(job, info, profile, n_particles) - profile.startup) * profile.refine_factor
 
 
 class Calibration:

@@ -204,6 +204,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         Calibration,
         estimate_job,
         format_seconds,
+        refinement_estimate,
         scene_info,
         sharing_slowdown,
         simulate_schedule,
@@ -253,11 +254,13 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
             if (m.get("result") or {}).get("n_particles"):
                 particles[j["id"]] = int(m["result"]["n_particles"])
     model: dict[str, float] = {}
+    refine_model: dict[str, float] = {}  # a fit's extra seconds if its grid check fails and it refines
 
     def price(j: dict, n_part: Optional[int]) -> None:
         sc = base_scene(scene_by_name[j["scene"]])  # a variant: priced as its source scene
         info = scene_info(sc.path, None if Path(sc.path, "all_data.json").is_file() else (sc.generate or {}).get("spec"))
         model[j["id"]] = estimate_job(j, info, profile, n_part) * slow
+        refine_model[j["id"]] = refinement_estimate(j, info, profile, n_part) * slow
         j["extra"]["estimate_s"] = round(model[j["id"]], 1)
 
     for j in jobs:
@@ -276,15 +279,23 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     total_est = sum(estimate(j)[0] for j in todo)
     done_ids = {j["id"] for j in jobs if j not in todo}
     wall = simulate_schedule(jobs, {j["id"]: estimate(j)[0] for j in todo}, n_workers, done_ids)
+    refinable = [j for j in todo if refine_model.get(j["id"])]
+    refined_wall = (simulate_schedule(jobs, {j["id"]: estimate(j)[0] + refine_model.get(j["id"], 0.0) for j in todo},
+                                      n_workers, done_ids) if refinable else None)
     per_chunk = (time_limit - grace) if time_limit else None
     emit("plan", out=str(bench), jobs=len(jobs), to_run=len(todo), scenes=len(spec.scenes),
          strategies=[s.label for s in spec.strategies], cameras=spec.cameras, executor=executor, workers=n_workers,
          gpus=list(gpus) if gpus else None, profile=profile.name, time_limit_s=time_limit,
          estimated_worker_s=round(total_est, 0), estimated_wall_s=round(wall, 0),
          estimated_chunks=None if not per_chunk else max(1, math.ceil(wall / max(1.0, per_chunk))),
+         **({"estimated_wall_s_if_all_refined": round(refined_wall, 0), "refinable_fits": len(refinable)}
+            if refined_wall is not None else {}),
          note="estimates are rough until jobs of each kind have finished (basis 'model' vs 'calibrated'); the wall "
               "time follows the dependencies (stage 0 before its fits)" + (f"; {jobs_per_gpu} jobs sharing a GPU are "
-                                                                          f"assumed {slow:.2f}x slower each" if slow != 1 else ""))
+                                                                          f"assumed {slow:.2f}x slower each" if slow != 1 else "")
+              + (f"; a fit whose grid check fails is fitted again at half the grid spacing (refine_grid), about "
+                 f"{profile.refine_factor:g}x its physics stage more: estimated_wall_s_if_all_refined is the wall time "
+                 "if every one does (at the paper's size all five elastic fits did)" if refined_wall is not None else ""))
     for j in todo:
         est, basis = estimate(j)
         emit("estimate", job=j["id"], est_s=round(est, 1), human=format_seconds(est), basis=basis)
