@@ -174,10 +174,9 @@ def fit_may_refine(job: dict, profile: DeviceProfile) -> bool:
     """Whether a fit job refits at half the grid spacing when its grid check fails: its
     ``refine_grid`` setting is true, or ``auto`` (the default) on a CUDA profile
     (:func:`toolkit.grid_refinement.refines_on`)."""
-    if job.get("kind") != "fit":
-        return False
-    refine = job.get("settings", {}).get("refine_grid", "auto")
-    return refine is True or (refine == "auto" and profile.name == "cuda")
+    from toolkit.grid_refinement import refines_on
+
+    return job.get("kind") == "fit" and refines_on(job.get("settings", {}).get("refine_grid", "auto"), profile.name)
 
 
 def refinement_estimate(job: dict, info: dict, profile: DeviceProfile, n_particles: Optional[int] = None) -> float:

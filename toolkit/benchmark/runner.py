@@ -295,7 +295,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
                                                                           f"assumed {slow:.2f}x slower each" if slow != 1 else "")
               + (f"; a fit whose grid check fails is fitted again at half the grid spacing (refine_grid), about "
                  f"{profile.refine_factor:g}x its physics stage more: estimated_wall_s_if_all_refined is the wall time "
-                 "if every one does (at the paper's size all five elastic fits did)" if refined_wall is not None else ""))
+                 "if every one does" if refined_wall is not None else ""))
     for j in todo:
         est, basis = estimate(j)
         emit("estimate", job=j["id"], est_s=round(est, 1), human=format_seconds(est), basis=basis)
