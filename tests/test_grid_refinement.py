@@ -109,3 +109,38 @@ def test_the_refined_run_links_the_parent_stage0(scene, tmp_path, monkeypatch):
     s2 = RunSettings(scene=str(scene), out=str(tmp_path / "fit"), geometry="stage0", sim={"dx": 0.04}, refine_grid=True)
     grid_refinement.refine_grid(s2, {"grid_check": {"converged": False, "fine_dx": 0.02}}, est, "cpu", stage0=elsewhere)
     assert os.readlink(tmp_path / "fit" / "refined" / "stage0") == os.path.join("..", "..", "prepare", "stage0")
+
+
+def test_a_failed_refinement_keeps_the_first_fit(tmp_path, monkeypatch):
+    """Round 4 of the paper-size benchmark lost a finished letter-L fit because its refined fit's
+    particles left the grid (GridTooLargeError at dx 0.01 m): the first fit's summary must stand,
+    with the failure recorded, and a stop request must still propagate."""
+    import toolkit.pipeline as pipeline
+    from toolkit.checkpointing import RunInterrupted
+    from toolkit.mpm.config import GridTooLargeError
+    from toolkit.run_summary import format_summary
+
+    run = tmp_path / "run"
+    run.mkdir()
+    s = RunSettings(scene=str(tmp_path / "scene"), out=str(run), geometry="oracle", sim={"dx": 0.02}, refine_grid=True)
+    first = {"material": "neo_hookean", "curriculum": "XAS:100@3,XASM:150", "parameters": [{"parameter": "E", "estimate": 1.6e5, "truth": 7.9e5, "low": 1e5, "high": 3e5, "label": "determined"}],
+             "future": {}, "timings_s": {"physics_s": 100.0}, "grid_check": {"converged": False, "fine_dx": 0.01, "dx": 0.02}}
+    est = {"params": {"E": 1.6e5, "nu": 0.3}, "v0": [0.0, 0.0, 0.0], "gravity": [0.0, -9.8, 0.0], "effects": {}}
+
+    def blow_up(child, mode):
+        raise GridTooLargeError("grid too large: dx = 0.01 m over the domain [-47.41, -0.04, -0.5] .. [1.69, 0.74, 0.84] m")
+
+    monkeypatch.setattr(pipeline, "run_pipeline", blow_up)
+    assert grid_refinement.refine_after_fit(s, first, est, "cuda", run) is None
+    saved = json.loads((run / "summary.json").read_text())
+    assert saved["parameters"][0]["estimate"] == 1.6e5  # the first fit's answer is kept
+    assert saved["refined"]["failed"].startswith("GridTooLargeError: grid too large") and saved["refined"]["out"].endswith("refined")
+    assert saved["timings_s"]["physics_s"] == 100.0 and saved["timings_s"]["refine_s"] >= 0.0
+    assert "the refined fit on a grid of half the spacing failed" in format_summary({**saved, "grid_check": None})
+
+    def stop(child, mode):
+        raise RunInterrupted("stop requested")
+
+    monkeypatch.setattr(pipeline, "run_pipeline", stop)
+    with pytest.raises(RunInterrupted):
+        grid_refinement.refine_after_fit(s, dict(first), est, "cuda", run)

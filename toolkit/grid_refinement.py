@@ -106,13 +106,27 @@ def refine_after_fit(s: "RunSettings", summary: dict, estimate: dict, device: st
     """:func:`refine_grid` for a finished fit in ``run`` (``projo4d run`` and a benchmark fit alike):
     when a refined fit ran, ``summary`` gains ``refined`` (its folder and summary) and
     ``timings_s.refine_s``, and is written again to ``run/summary.json`` (atomically). Returns the
-    refined summary, or None."""
+    refined summary, or None.
+
+    A refined fit that fails (a :class:`~toolkit.mpm.config.SimulationError` such as a grid grown
+    past the memory limit, CUDA out of memory, an input error at the finer spacing) does not lose
+    the first fit: ``summary["refined"]`` records ``{"out", "failed": "<error type>: <message>"}``,
+    the first fit's result stands, and None is returned. A stop request
+    (:class:`~toolkit.checkpointing.RunInterrupted`) still propagates."""
     import time
 
     from toolkit.atomic import write_json
 
     t = time.perf_counter()
-    refined = refine_grid(s, summary, estimate, device, stage0=stage0)
+    try:
+        refined = refine_grid(s, summary, estimate, device, stage0=stage0)
+    except (RuntimeError, ValueError) as err:  # a simulation, memory or input error; a stop request is not one
+        reason = f"{type(err).__name__}: {err}"
+        log.error("the refined fit failed; the first fit's result stands (%s): %s", run / "summary.json", reason)
+        summary["refined"] = {"out": str(run / REFINED_FOLDER), "failed": reason}
+        summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": time.perf_counter() - t}
+        write_json(run / "summary.json", summary)
+        return None
     summary["refined"] = None if refined is None else {"out": str(run / REFINED_FOLDER), "summary": refined}
     if refined is not None:
         summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": time.perf_counter() - t}

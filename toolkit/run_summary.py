@@ -68,7 +68,10 @@ def format_summary(summary: dict) -> str:
         lines.append(format_grid_check(summary["grid_check"]))
     lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
     refined = summary.get("refined")
-    if refined:
+    if refined and refined.get("failed"):
+        lines.append(f"--- the refined fit on a grid of half the spacing failed ({refined['out']}); the estimate above "
+                     f"stands: {refined['failed']}")
+    elif refined:
         lines.append(f"--- refined on a grid of half the spacing ({refined['out']}):")
         lines.append(format_summary(refined["summary"]))
     return "\n".join(lines)

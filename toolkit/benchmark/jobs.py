@@ -367,7 +367,8 @@ def _fit(job: dict) -> dict:
     return {"cd": fut.get("cd"), "emd": fut.get("emd"), "psnr": fut.get("psnr"), "ssim": fut.get("ssim"),
             "errors": _errors(summary), "curriculum": summary["curriculum"],
             "timings_s": {k: round(v, 1) for k, v in timings.items()}, "diverged": diverged, "threads": threads,
-            **({"refined": {"cd": (refined.get("future") or {}).get("cd"), "errors": _errors(refined)}} if refined else {})}
+            **({"refined": {"cd": (refined.get("future") or {}).get("cd"), "errors": _errors(refined)}} if refined else {}),
+            **({"refine_failed": summary["refined"]["failed"]} if (summary.get("refined") or {}).get("failed") else {})}
 
 
 def _errors(summary: dict) -> dict:
