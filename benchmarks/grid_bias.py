@@ -1,19 +1,25 @@
 """How much the fitting grid alone biases a material parameter (issue #20).
 
-The synthetic suite simulates its truth at a finer grid than the fit uses (full size: dx 0.01 m,
-particles at 0.005 m, 200 substeps; the configs fit at dx 0.02 m). This script takes one suite
+The synthetic suite simulates its truth at a finer grid than the fit uses (full size: dx 0.008 m,
+particles at 0.004 m, at least 200 substeps, since 2026-11-26; 0.01 m before; the configs fit at
+dx 0.02 m). This script takes one suite
 scene's body and throw, simulates the truth exactly as the generator does, then simulates the
 same body at the fitting resolution (the mesh filled at ``fit_dx / 2``, the config's substep
 planning) for a sweep of one parameter around its true value, and scores each rollout against the
 truth's particles: the per-frame symmetric Chamfer distance (mean nearest-neighbour distance both
 ways, metres), averaged over the frames. No images, no stage 0, no optimizer: if the lowest
-score sits away from the truth, the fitting grid alone moves the estimate there.
+score sits away from the truth, the fitting grid alone moves the estimate there. Each row also
+gives the body's rebound (the highest centroid after its first low point, metres) and its
+horizontal travel, the two things a ground contact changes most: with the ``sticky`` ground both
+depend on the grid (``--boundary`` sets the ground of truth and rollouts alike).
 
 One JSON line per swept value, then a summary line with the best value and its offset from the
 truth (decades for log parameters)::
 
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --size full --fit-dx 0.02
-    python benchmarks/grid_bias.py --family neo_hookean --index 0 --size full --fit-dx 0.01   # control: the truth's grid
+    python benchmarks/grid_bias.py --family neo_hookean --index 0 --size full --fit-dx 0.01   # a finer fitting grid
+    python benchmarks/grid_bias.py --family neo_hookean --index 0 --truth-dx 0.02 --fit-dx 0.02  # control: the truth's grid
+    python benchmarks/grid_bias.py --family neo_hookean --index 0 --boundary separate          # another ground
 
 Benchmarks are never part of the test suite.
 """
@@ -33,6 +39,18 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 
+def contact_summary(positions: np.ndarray) -> dict:
+    """The body's rebound and travel from particle positions (F, N, 3), y up, metres: the frame of
+    the centroid's first low point (the last frame when it has not bounced yet), its highest point
+    after that (``rebound_m``), and the
+    horizontal distance the centroid travelled from frame 0 to the last frame (``travel_m``)."""
+    c = positions.mean(1)
+    y = c[:, 1]
+    low = next((f for f in range(1, len(y) - 1) if y[f] <= y[f - 1] and y[f] < y[f + 1]), len(y) - 1)
+    return {"contact_frame": int(low), "rebound_m": round(float(y[low:].max()), 4),
+            "travel_m": round(float(np.hypot(c[-1, 0] - c[0, 0], c[-1, 2] - c[0, 2])), 4)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--family", default="neo_hookean")
@@ -46,8 +64,13 @@ def main() -> None:
                         help="offsets from the truth: decades for log parameters, multiples of --linear-step for others")
     parser.add_argument("--linear-step", type=float, default=0.1,
                         help="unit of an offset for a parameter that is not log-scaled (e.g. 5 for a friction angle in degrees)")
+    parser.add_argument("--truth-dx", type=float, default=None, help="the truth's grid spacing, metres (default: the size preset's)")
+    parser.add_argument("--boundary", default=None, choices=["sticky", "slip", "separate"],
+                        help="the ground of the truth and of every rollout (default: the scene's)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
+    if args.truth_dx is not None and not args.truth_dx > 0:
+        parser.error(f"--truth-dx must be a positive grid spacing in metres, got {args.truth_dx}")
     if not args.fit_dx > 0:
         parser.error(f"--fit-dx must be a positive grid spacing in metres, got {args.fit_dx}")
     if args.frames < 2:
@@ -64,7 +87,9 @@ def main() -> None:
     from toolkit.synthetic.suite import sample_scene_spec
     from toolkit.synthetic.truth import GROUND_HEIGHT, build_object, simulate_truth
 
-    spec = sample_scene_spec(args.family, args.index, args.seed, args.size, args.device, n_frames=args.frames)
+    overrides = {"n_frames": args.frames, **({"dx": args.truth_dx} if args.truth_dx else {}),
+                 **({"boundary": args.boundary} if args.boundary else {})}
+    spec = sample_scene_spec(args.family, args.index, args.seed, args.size, args.device, **overrides)
     material = get_material(spec.material, **spec.material_options)
     try:
         p = material.param(args.param)
@@ -74,8 +99,9 @@ def main() -> None:
     t = time.perf_counter()
     truth = simulate_truth(spec, mesh)
     print(json.dumps({"benchmark": "grid_bias", "event": "truth", "shape": spec.shape, "params": spec.params, "v0": list(spec.v0),
-                      "dx": spec.dx, "particles": int(truth.particles.shape[1]), "substeps": truth.substeps,
-                      "seconds": round(time.perf_counter() - t, 1)}), flush=True)
+                      "dx": spec.dx, "boundary": spec.boundary, "particles": int(truth.particles.shape[1]),
+                      "substeps": truth.substeps, **contact_summary(truth.particles), "seconds": round(time.perf_counter() - t, 1)}),
+          flush=True)
     particles, volume = fill_mesh(mesh, args.fit_dx / 2, device=args.device)
     config = SimConfig(dx=args.fit_dx, frame_dt=1.0 / spec.fps, density=spec.density, particle_volume=volume,
                        gravity=tuple(spec.gravity), ground_height=GROUND_HEIGHT, boundary=spec.boundary,
@@ -94,12 +120,13 @@ def main() -> None:
         per_frame = [mean_nearest_distance(pos[f], truth.particles[f]) for f in range(args.frames)]
         row = {"benchmark": "grid_bias", "param": args.param, "offset": k, "value": value, "fit_dx": args.fit_dx,
                "particles": len(particles), "substeps": int(out.substeps), "cd_mean_m": float(np.mean(per_frame)),
-               "cd_per_frame_mm": [round(1e3 * c, 3) for c in per_frame], "seconds": round(time.perf_counter() - t, 1)}
+               "cd_per_frame_mm": [round(1e3 * c, 3) for c in per_frame], **contact_summary(pos),
+               "seconds": round(time.perf_counter() - t, 1)}
         rows.append(row)
         print(json.dumps(row), flush=True)
     best = min(rows, key=lambda r: r["cd_mean_m"])
     print(json.dumps({"benchmark": "grid_bias", "event": "summary", "param": args.param, "truth": true_value, "fit_dx": args.fit_dx,
-                      "truth_dx": spec.dx, "best_value": best["value"], "best_offset": best["offset"],
+                      "truth_dx": spec.dx, "boundary": spec.boundary, "best_value": best["value"], "best_offset": best["offset"],
                       "offset_unit": "decades" if log_axis else f"x{args.linear_step:g}", "cd_at_truth_m": next(
                           (r["cd_mean_m"] for r in rows if r["offset"] == 0.0), math.nan), "cd_best_m": best["cd_mean_m"]}),
           flush=True)
