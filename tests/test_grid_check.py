@@ -61,6 +61,12 @@ def test_an_unresolved_impact_moves_with_the_grid():
     assert rec["shift_per_frame_m"][0] < 1e-6 and max(rec["shift_per_frame_m"]) > rec["shift_m"]
     line = format_grid_check({**rec, "residual_m": 1e-3, "ratio": rec["shift_m"] / 1e-3, "converged": False})
     assert "fit again with --sim '{\"dx\": 0.02}'" in line
+    # a shift below a large misfit is not called resolved: the line gives the misfit and its floor
+    # (round 4's letter T: a 47 mm shift under a 68 mm residual)
+    missed = format_grid_check({**rec, "shift_m": 0.047, "residual_m": 0.068, "first_frame_residual_m": 0.003,
+                                "ratio": 0.047 / 0.068, "converged": True})
+    assert "0.7x the fit's residual (68.00 mm; 3.00 mm at the first frame" in missed
+    assert "less than the fit misses the data" in missed and "resolves" not in missed
 
 
 def test_a_failed_check_marks_the_material_parameters_only():
