@@ -10,7 +10,8 @@ __all__ = ["run_summary", "format_summary"]
 
 def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) -> dict:
     """The ``summary.json`` of a fitted ``module``: estimate beside the truth with intervals and
-    labels, future and training metrics, timings and report files (``evaluation``: the
+    labels (material parameters, v0 and the strengths of fitted effects, ``<effect>.<param>``),
+    future and training metrics, timings and report files (``evaluation``: the
     :func:`toolkit.evaluation.evaluate_module` record)."""
     est = module.estimate()
     gt = module.input.ground_truth or {}
@@ -20,6 +21,11 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
         rows.append({"parameter": name, "estimate": value, "truth": truth})
     for i, c in enumerate("xyz"):
         rows.append({"parameter": f"v0_{c}", "estimate": est["v0"][i], "truth": None if gt.get("v0") is None else gt["v0"][i]})
+    true_effects = gt.get("effects") if isinstance(gt.get("effects"), dict) else {}
+    for effect, values in (est.get("effects") or {}).items():  # fitted effects, named as the uncertainty names them
+        truth = true_effects.get(effect) if isinstance(true_effects.get(effect), dict) else {}
+        for param, value in values.items():
+            rows.append({"parameter": f"{effect}.{param}", "estimate": float(value), "truth": truth.get(param)})
     from toolkit.physics.uncertainty import annotate_rows  # 90 % intervals and identifiability labels (issue #24)
 
     annotate_rows(rows, module.uncertainty_result)

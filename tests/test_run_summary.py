@@ -1,0 +1,41 @@
+"""The run summary lists every fitted quantity beside its truth: material parameters, v0 and the
+strengths of fitted effects (a fitted ground friction was missing from the table and from
+``summary.json`` until 2026-11-26; only ``physics/estimate.json`` had it)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+from toolkit.run_summary import format_summary, run_summary
+
+
+def _module(effects: dict, true_effects) -> SimpleNamespace:
+    est = {"material": "neo_hookean", "params": {"E": 1.59e5, "nu": 0.26}, "v0": [-0.74, -0.19, -0.93],
+           "gravity": [0.0, -9.8, 0.0], "effects": effects}
+    unc = {"parameters": {"E": {"low": 7.6e4, "high": 9.0e5, "label": "determined"},
+                          "ground_friction.mu": {"low": 0.1, "high": 0.5, "label": "weakly determined", "note": "n"}},
+           "level": 0.9, "noise_std": 0.01, "dof": 10, "frames": 6, "rollouts": 12, "seconds": 1.0, "prior_step": 1.0}
+    gt = {"params": {"E": 7.99e5, "nu": 0.40}, "v0": [-0.73, -0.18, -0.92], "effects": true_effects}
+    return SimpleNamespace(
+        estimate=lambda: est, uncertainty_result=unc,
+        input=SimpleNamespace(ground_truth=gt, meta={}),
+        curriculum=SimpleNamespace(schedule_string=lambda name: "XAS:100@3,XASM:150"),
+        material=SimpleNamespace(registry_name="neo_hookean"))
+
+
+def test_fitted_effects_are_rows_with_their_truth_and_interval():
+    summary = run_summary(_module({"ground_friction": {"mu": 0.284}}, {"ground_friction": {"mu": 0.3}}), {}, {"physics_s": 1.0}, [])
+    rows = {r["parameter"]: r for r in summary["parameters"]}
+    assert list(rows) == ["E", "nu", "v0_x", "v0_y", "v0_z", "ground_friction.mu"]
+    mu = rows["ground_friction.mu"]
+    assert (mu["estimate"], mu["truth"], mu["low"], mu["high"], mu["label"]) == (0.284, 0.3, 0.1, 0.5, "weakly determined")
+    assert rows["nu"]["label"] == "fixed (not fitted)"  # no interval for it in this result
+    table = format_summary(summary)
+    assert "ground_friction.mu" in table and "[0.1, 0.5]" in table
+
+
+def test_an_effect_the_truth_lacks_has_no_truth():
+    summary = run_summary(_module({"air_drag": {"linear": 0.5, "quadratic": 0.0}}, []), {}, {}, [])
+    rows = {r["parameter"]: r for r in summary["parameters"]}
+    assert rows["air_drag.linear"]["truth"] is None and rows["air_drag.quadratic"]["estimate"] == 0.0
+    assert len(summary["parameters"]) == 7
