@@ -42,8 +42,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 def contact_summary(positions: np.ndarray) -> dict:
     """The body's rebound and travel from particle positions (F, N, 3), y up, metres: the frame of
     the centroid's first low point (the last frame when it has not bounced yet), its highest point
-    after that (``rebound_m``), and the
-    horizontal distance the centroid travelled from frame 0 to the last frame (``travel_m``)."""
+    after that (``rebound_m``), and the horizontal distance the centroid travelled from frame 0 to
+    the last frame (``travel_m``)."""
     c = positions.mean(1)
     y = c[:, 1]
     low = next((f for f in range(1, len(y) - 1) if y[f] <= y[f - 1] and y[f] < y[f + 1]), len(y) - 1)

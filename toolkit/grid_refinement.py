@@ -118,17 +118,16 @@ def refine_after_fit(s: "RunSettings", summary: dict, estimate: dict, device: st
     from toolkit.atomic import write_json
 
     t = time.perf_counter()
+    refined, record = None, None
     try:
         refined = refine_grid(s, summary, estimate, device, stage0=stage0)
+        if refined is not None:
+            record = {"out": str(run / REFINED_FOLDER), "summary": refined}
     except (RuntimeError, ValueError) as err:  # a simulation, memory or input error; a stop request is not one
-        reason = f"{type(err).__name__}: {err}"
-        log.error("the refined fit failed; the first fit's result stands (%s): %s", run / "summary.json", reason)
-        summary["refined"] = {"out": str(run / REFINED_FOLDER), "failed": reason}
-        summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": time.perf_counter() - t}
-        write_json(run / "summary.json", summary)
-        return None
-    summary["refined"] = None if refined is None else {"out": str(run / REFINED_FOLDER), "summary": refined}
-    if refined is not None:
+        record = {"out": str(run / REFINED_FOLDER), "failed": f"{type(err).__name__}: {err}"}
+        log.error("the refined fit failed; the first fit's result stands (%s): %s", run / "summary.json", record["failed"])
+    summary["refined"] = record
+    if record is not None:
         summary["timings_s"] = {**(summary.get("timings_s") or {}), "refine_s": time.perf_counter() - t}
     write_json(run / "summary.json", summary)
     return refined
