@@ -30,4 +30,6 @@ def test_an_empty_continuum_gives_a_clear_error(tmp_path, capsys):
     message = err[-1]
     assert message.startswith("projo4d run: the continuum found no particles") and "3 training views" in message, message
     assert "PSNR" in message and "train it longer" in message and str(out / "stage0" / "logs") in message, message
+    assert "density_min 2.0" in message and str(out / "continuum" / "stats.json") in message, message  # the step that emptied it
+    assert json.loads((out / "continuum" / "stats.json").read_text())["n_particles"] == 0
     assert not (out / "physics_input.pt").exists()  # nothing half-built left behind

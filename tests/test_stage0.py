@@ -8,6 +8,7 @@ the measured values (docstrings) so a regression shows up as a failure, not as n
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -293,6 +294,40 @@ def test_continuum_survives_degenerate_gaussians():
     assert res.particles.shape[0] > 0 and torch.isfinite(res.particles).all()
     true_volume = 4.0 / 3.0 * math.pi * radius**3
     assert 0.75 < res.volume / true_volume < 1.25  # measured 0.97 (coarsened candidates)
+
+
+def test_an_empty_continuum_names_the_step_that_emptied_it(tmp_path):
+    """Each way of ending with no particles is named from the counts (stats.json is written next
+    to the PLYs), so a failed full-size run says which step to look at: degenerate Gaussians,
+    centres no view agrees on, a carving that keeps nothing, or too sparse a carving."""
+    centre, radius = (0.0, 0.3, 0.0), 0.1
+    cams = _ring_cameras(centre)
+    masks = _sphere_masks(cams, centre, radius)
+    g = _sphere_gaussians(1000, radius, centre)
+    cfg = ContinuumConfig(grid_size=0.05, final_level=3, candidate_level=3)
+
+    def reason(gauss, m, **over):
+        res = build_continuum(gauss, cams, m, frames=[0], config={**cfg.to_dict(), **over}, renderer="warp")
+        assert (res.particles.shape[0] == 0) == bool(res.empty_reason())
+        return res, res.empty_reason()
+
+    ok, why = reason(g, masks)
+    assert ok.particles.shape[0] > 0 and why == ""
+    huge = Gaussians(means=g.means, log_scales=torch.full_like(g.log_scales, 1.0), quats=g.quats,
+                     opacity_logits=g.opacity_logits, colors=g.colors)
+    _, why = reason(huge, masks)
+    assert why.startswith("all 1000 Gaussians were degenerate"), why
+    faint = Gaussians(means=g.means, log_scales=g.log_scales, quats=g.quats,
+                      opacity_logits=torch.full_like(g.opacity_logits, -10.0), colors=g.colors)
+    _, why = reason(faint, masks)
+    assert why.startswith("no Gaussian centre with opacity above 0.01"), why
+    _, why = reason(g, torch.zeros_like(masks))
+    assert why.startswith("none of the") and "inside every view's mask" in why, why
+    sparse, why = reason(g, masks, density_min=2.0)
+    st = sparse.stats["frames"][0]
+    assert st["carved"] > 0 and f"{st['carved']} of {st['candidates']} lattice points survived" in why and "density_min 2.0" in why
+    saved = json.loads((sparse.save(tmp_path / "c") / "stats.json").read_text())
+    assert saved["n_particles"] == 0 and saved["frames"][0]["carved"] == st["carved"]
 
 
 # ---------------------------------------------------------------------------- end to end

@@ -6,7 +6,7 @@ Run folder layout (every step resumes or is skipped when its output exists)::
       run.json              the run's identity (scene fingerprint, result-changing settings; toolkit.run_folder)
       settings.json         the resolved settings of this run
       stage0/               4D Gaussians checkpoints (last.ckpt), gaussians.ply (canonical, 3DGS layout)
-      continuum/            particles.ply, surface_XXX.ply
+      continuum/            particles.ply, surface_XXX.ply, stats.json
       physics_input.pt      the physics stages' input (Gaussians, particles, surfaces, images)
       physics/              checkpoints/, logs/, estimate.json, history.json
       evaluation/           evaluation.json, prediction.npz, renders.npz
@@ -192,18 +192,20 @@ class EmptyContinuumError(UserError):
     """Stage 0's Gaussians gave the continuum no particles (no interior voxel in the first frame)."""
 
 
-def empty_continuum_message(run: Path, n_views: int) -> str:
-    """What went wrong when the continuum is empty, with stage 0's last logged quality and the fix."""
+def empty_continuum_message(run: Path, n_views: int, reason: str = "") -> str:
+    """What went wrong when the continuum is empty: the step that emptied it (``reason``, from
+    :meth:`~toolkit.scene.continuum.Continuum.empty_reason`), stage 0's last logged quality and the fix."""
     from toolkit.stage0_only import last_logged_metrics
 
     logged = last_logged_metrics(run / "stage0" / "logs")
     psnr, count = logged.get("train/psnr"), logged.get("train/n_gaussians")
     quality = (f"stage 0 ended at PSNR {psnr:.1f} dB" if psnr is not None else "stage 0 logged no PSNR") + (
         f" with {int(count)} Gaussians" if count is not None else "")
+    why = f"; {reason} (counts per step: {run / 'continuum' / 'stats.json'})" if reason else ""
     return (f"the continuum found no particles: no voxel of the first frame is inside the object (the Gaussians' "
-            f"density, carved by the masks of the {n_views} training views); {quality} ({run / 'stage0' / 'logs'}). Usually stage 0 has not converged: train it "
-            "longer (run.stage0 'full' or more iterations, then --overwrite); else check the training cameras' masks "
-            "and run.continuum (density_min)")
+            f"density, carved by the masks of the {n_views} training views){why}; {quality} ({run / 'stage0' / 'logs'}). "
+            "Usually stage 0 has not converged: train it longer (run.stage0 'full' or more iterations, then --overwrite) "
+            "or with another --seed; else check the training cameras' masks and run.continuum (density_min)")
 
 
 def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
@@ -247,7 +249,7 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     timings["continuum_s"] = time.perf_counter() - t
     log.info(cont.summary())
     if cont.particles.shape[0] == 0:
-        raise EmptyContinuumError(empty_continuum_message(run, len(views.camera_indices)))
+        raise EmptyContinuumError(empty_continuum_message(run, len(views.camera_indices), cont.empty_reason()))
     with torch.no_grad():
         g0 = module.gaussians_at(t0).detach()
     g0 = g0.to("cpu")

@@ -55,7 +55,7 @@ from renderers.base import Gaussians, Renderer
 from toolkit.cameras import Cameras
 from toolkit.settings import DictSettings
 
-__all__ = ["ContinuumConfig", "Continuum", "build_continuum", "sanitize_gaussians", "density_volume"]
+__all__ = ["ContinuumConfig", "Continuum", "build_continuum", "sanitize_gaussians", "density_volume", "why_empty"]
 
 log = logging.getLogger(__name__)
 
@@ -138,14 +138,41 @@ class Continuum:
         )
 
     def save(self, out_dir: str | Path) -> Path:
-        """Write ``particles.ply`` and ``surface_XXX.ply`` (binary PLY points) into ``out_dir``."""
+        """Write ``particles.ply``, ``surface_XXX.ply`` (binary PLY points) and ``stats.json``
+        (:attr:`stats`: what each step kept, per frame) into ``out_dir``."""
+        from toolkit.atomic import write_json
         from toolkit.data.ply import write_ply_points
 
         out = Path(out_dir)
         write_ply_points(out / "particles.ply", self.particles.numpy())
         for i, s in enumerate(self.surfaces):
             write_ply_points(out / f"surface_{i:03d}.ply", s.numpy())
+        write_json(out / "stats.json", self.stats)
         return out
+
+    def empty_reason(self) -> str:
+        """Which step of the procedure left the first frame without particles, from its stats
+        (empty string when there are particles)."""
+        if self.particles.shape[0] > 0:
+            return ""
+        frames = self.stats.get("frames") or [{}]
+        return why_empty(frames[0], self.stats.get("config") or {})
+
+
+def why_empty(st: dict, config: dict) -> str:
+    """One sentence naming the step that emptied a frame, from its entry of ``Continuum.stats["frames"]``."""
+    if st.get("gaussians", 1) == 0:
+        return (f"all {st.get('dropped_gaussians', 0)} Gaussians were degenerate (non-finite, or a standard deviation "
+                f"above max_scale)")
+    if st.get("centres", 1) == 0:
+        return (f"no Gaussian centre with opacity above {config.get('opacity_threshold', 0.01)} projects onto a rendered "
+                f"pixel in every training view: the views disagree on where the object is")
+    if st.get("carved", 1) == 0:
+        return (f"none of the {st.get('candidates', 0)} lattice points is inside every view's mask and behind its rendered "
+                f"depth")
+    return (f"{st.get('carved', 0)} of {st.get('candidates', 0)} lattice points survived the carving and "
+            f"{st.get('centres', 0)} Gaussian centres were kept, but too few lie together for the smoothed density to "
+            f"reach density_min {config.get('density_min', 0.5)}")
 
 
 @torch.no_grad()
