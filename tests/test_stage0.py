@@ -194,6 +194,9 @@ def test_compressed_schedule_scales_every_iteration_count():
     assert (ten.iterations, ten.warmup, ten.densify_from, ten.densify_until, ten.densify_interval) == (10_000, 750, 125, 3_750, 25)
     assert (ten.opacity_reset_interval, ten.sh_increase_interval) == (750, 250)
     assert (ten.position_lr_max_steps, ten.deform_lr_max_steps) == (7_500, 10_000)
+    # the frames of the dynamic phase come in over its first third (GIC: all at once), at any length
+    assert (full.frame_curriculum, ten.frame_curriculum) == (12_300, 3_075)
+    assert Stage0Schedule.compressed(100).frame_curriculum == 31 and Stage0Schedule().frame_curriculum == 0
     # rates and weights are not iteration counts: unchanged
     assert (ten.position_lr_init, ten.feature_lr, ten.lambda_dssim) == (full.position_lr_init, full.feature_lr, full.lambda_dssim)
     # the learning rate reaches its final value at the same fraction of the run

@@ -52,6 +52,10 @@ def test_stage0_alone_writes_its_artifacts_and_a_stage0_identity(stage0_run):
     assert (out / "stage0" / "last.ckpt").is_file() and (out / "stage0" / "gaussians.ply").is_file()
     assert [float(summary["last_logged"]["train/iteration"])] == [50.0]  # the tiny schedule logs every 50
     assert summary["last_logged"]["train/psnr"] > 0
+    coverage = summary["coverage"]  # how much of each training frame's masks the Gaussians cover
+    assert coverage == json.loads((out / "stage0" / "coverage.json").read_text())
+    assert coverage["cameras"] == 3 and len(coverage["per_frame_min"]) >= 2 and coverage["per_frame_min"][0] > 0.5
+    assert coverage["lost_frames"] == [i for i, c in enumerate(coverage["per_frame_min"]) if c < coverage["threshold"]]
     identity = json.loads((out / "run.json").read_text())
     assert identity["stage"] == "stage0"
     assert sorted(identity["settings"]) == ["cameras", "downscale", "geometry", "n_train", "renderer", "seed", "stage0"]
@@ -135,6 +139,11 @@ def test_a_later_run_reuses_stage0_and_matches_a_run_done_in_one_go(stage0_run, 
     assert a["parameters"] == b["parameters"] and a["future"] == b["future"] and a["train"] == b["train"]
     ia, ib = (torch.load(p / "physics_input.pt", weights_only=True) for p in (out, straight))
     assert torch.equal(ia["particles"], ib["particles"]) and torch.equal(ia["gaussians"]["means"], ib["gaussians"]["means"])
+    # this short stage 0 loses the object in its later frames: their surfaces are no measurement, so
+    # they are left out of the geometric loss (empty), and the summary names them
+    lost = json.loads((out / "stage0" / "coverage.json").read_text())["lost_frames"]
+    assert lost and a["stage0_coverage"]["lost_frames"] == lost
+    assert [f for f, sf in enumerate(ia["surfaces"][:len(a["stage0_coverage"]["per_frame_min"])]) if len(sf) == 0] == [f for f in lost if f > 0]
 
     # stage 0 into the folder of the whole run: checked on the stage-0 settings, the run's records kept
     before = (out / "run.json").read_text(), (out / "settings.json").read_text()

@@ -185,7 +185,28 @@ def fit_stage0_step(s: RunSettings, scene, run: Path, timings: dict):
     timings["stage0_s"] = time.perf_counter() - t
     module = module.to(device).eval()
     save_ply(stage0_dir / "gaussians.ply", module, time=float(views.times[0]))
+    check_stage0_coverage(module, views, stage0_dir)
     return module, views
+
+
+def check_stage0_coverage(module, views, stage0_dir: Path) -> Optional[dict]:
+    """Writes ``stage0_dir/coverage.json`` (:func:`toolkit.scene.coverage.coverage_record`: how
+    much of each training frame's masks the Gaussians cover) and warns, naming the frames, when
+    stage 0 lost the object in some of them. Returns the record (None without masks)."""
+    from toolkit.scene.coverage import coverage_record, lost_object_message, mask_coverage
+
+    if views.masks is None:
+        return None
+    dev = module.gaussians.means.device
+    record = coverage_record(mask_coverage(module, views.to(dev)))
+    write_json(stage0_dir / COVERAGE_FILE, record)
+    if record["lost_frames"]:
+        log.warning(lost_object_message(record, stage0_dir / COVERAGE_FILE))
+    return record
+
+
+#: stage 0's mask coverage record, in the run's ``stage0`` folder
+COVERAGE_FILE = "coverage.json"
 
 
 class EmptyContinuumError(UserError):
@@ -239,6 +260,8 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     scene = load_scene(s.scene)
     module, views = fit_stage0_step(s, scene, run, timings)
     t0 = float(views.times[0])
+    coverage_file = run / "stage0" / COVERAGE_FILE
+    coverage = json.loads(coverage_file.read_text()) if coverage_file.is_file() else None
 
     t = time.perf_counter()
     dx = float(s.sim.get("dx", 0.02))
@@ -256,6 +279,13 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     images, masks = load_all_images(scene, s.downscale)
     T = scene.n_frames
     surfaces = list(cont.surfaces) + [torch.zeros((0, 3))] * (T - len(cont.surfaces))
+    lost = [f for f in (coverage or {}).get("lost_frames", []) if f > 0]  # frame 0 built the particles: kept
+    if lost:  # a model that lost the object there gives no measurement of the surface: no geometric loss
+        from toolkit.scene.coverage import format_frames
+
+        log.warning("the stage-0 surfaces of training frames %s are left out of the geometric loss (stage 0 lost the "
+                    "object there; %s)", format_frames(lost), run / "stage0" / COVERAGE_FILE)
+        surfaces = [torch.zeros((0, 3)) if i in lost else sf for i, sf in enumerate(surfaces)]
     gt = None
     if scene.ground_truth is not None:
         g = scene.ground_truth
@@ -265,7 +295,7 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     inp = PhysicsInput(gaussians=g0, particles=cont.particles.float(), particle_volume=cont.particle_volume, surfaces=surfaces,
                        cameras=cams, train_cameras=list(views.camera_indices), images=images, masks=masks,
                        times=torch.as_tensor(scene.times, dtype=torch.float32), n_train=len(views.frames), ground_truth=gt,
-                       meta={"scene_root": str(s.scene), "source": "stage0", "continuum": cont.stats,
+                       meta={"scene_root": str(s.scene), "source": "stage0", "continuum": cont.stats, "stage0_coverage": coverage,
                              "world": world_meta(scene), **exclusion_meta(scene, s.downscale)})
     check_world(inp.particles.numpy(), surfaces, scene.times, dx, inp.meta["world"])  # scene in the wrong world: stop here
     write_world_meta(run / WORLD_META_FILE, inp.meta["world"])

@@ -49,6 +49,7 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
                   "ssim": img.get("ssim_train")},
         "timings_s": {k: round(v, 1) for k, v in timings.items()},
         "report": [str(f) for f in files],
+        "stage0_coverage": module.input.meta.get("stage0_coverage"),  # frames where stage 0 lost the object
     }
 
 
@@ -72,6 +73,11 @@ def format_summary(summary: dict) -> str:
         from toolkit.physics.grid_check import format_grid_check
 
         lines.append(format_grid_check(summary["grid_check"]))
+    coverage = summary.get("stage0_coverage") or {}
+    if coverage.get("lost_frames"):
+        from toolkit.scene.coverage import lost_object_message
+
+        lines.append("WARNING " + lost_object_message(coverage))
     lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
     refined = summary.get("refined")
     if refined and refined.get("failed"):

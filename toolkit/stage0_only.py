@@ -34,10 +34,12 @@ def run_stage0(settings, mode: str = "auto") -> dict:
             (see :func:`~toolkit.run_folder.claim_run_folder`).
 
     Returns:
-        ``{"iterations", "n_gaussians", "stage0_s", "last_logged", "opacity_resets_reverted", "files"}``:
+        ``{"iterations", "n_gaussians", "stage0_s", "last_logged", "opacity_resets_reverted", "coverage", "files"}``:
         iterations done, Gaussians at the end, seconds of this call, the last logged ``train/*``
         metrics (loss, L1, SSIM, PSNR in dB; empty if none were logged), the opacity resets undone
-        because they faded most of the model (:mod:`toolkit.scene.opacity_reset`) and the files written.
+        because they faded most of the model (:mod:`toolkit.scene.opacity_reset`), how much of each
+        training frame's masks the Gaussians cover (:func:`toolkit.scene.coverage.coverage_record`,
+        with the frames where stage 0 lost the object; None without masks) and the files written.
 
     Raises:
         SettingsError: a bad setting or a folder holding another run or stage 0 (nothing written).
@@ -64,9 +66,19 @@ def run_stage0(settings, mode: str = "auto") -> dict:
     summary = {"iterations": int(module.step), "n_gaussians": int(module.gaussians.n),
                "stage0_s": time.perf_counter() - t, "last_logged": last_logged_metrics(stage0_dir / "logs"),
                "opacity_resets_reverted": list(module.reset_guard.reverted),
+               "coverage": _coverage(stage0_dir),
                "files": [str(stage0_dir / "last.ckpt"), str(stage0_dir / "gaussians.ply"), str(stage0_dir / "logs")]}
     write_json(stage0_dir / STAGE0_SUMMARY, summary)
     return summary
+
+
+def _coverage(stage0_dir: Path):
+    import json
+
+    from toolkit.pipeline import COVERAGE_FILE
+
+    path = stage0_dir / COVERAGE_FILE
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def last_logged_metrics(logs: Path) -> dict:
@@ -94,5 +106,10 @@ def format_stage0_summary(summary: dict) -> str:
     if logged:
         lines.append(f"last logged (iteration {logged.get('train/iteration', float('nan')):.0f}): "
                      f"loss {logged.get('train/loss', float('nan')):.4f}, PSNR {logged.get('train/psnr', float('nan')):.2f} dB")
+    coverage = summary.get("coverage") or {}
+    if coverage.get("lost_frames"):
+        from toolkit.scene.coverage import lost_object_message
+
+        lines.append("WARNING " + lost_object_message(coverage))
     lines.append("files: " + ", ".join(summary["files"]))
     return "\n".join(lines)
