@@ -6,6 +6,7 @@ rendered from every fitting camera in one renderer call:
     L = (1 - λ) L1(Î, I) + λ (1 - SSIM(Î, I))          λ = 0.2 (``lambda_dssim``)
       + λ_α L1(α̂, α)                                   α: object masks (GIC ``--reg_alpha``, λ_α = 1)
       + λ_s mean(scales)   after the warm-up           GIC ``--reg_scale``: λ_s = 10
+      + λ_a L_anchor       after the warm-up           silhouette anchor (not in GIC), λ_a = 1 in ``full``
 
 Ground-truth images are the masked images on black (DESIGN section 7). Positions at time ``t``
 are ``x_t = x_0 + Δ(x_0, t)``; during the static warm-up (the first ``warmup`` iterations, frame
@@ -54,6 +55,7 @@ from torch.utils.data import DataLoader, IterableDataset
 
 from renderers import RENDERERS, get_renderer
 from renderers.base import Gaussians, RenderOutput
+from toolkit.scene.silhouette_anchor import mask_centroids, silhouette_anchor_loss
 from toolkit.cameras import Cameras
 from toolkit.data.exclusion import apply_keep
 from toolkit.settings import DictSettings
@@ -107,6 +109,8 @@ ITERATION_COUNT_FIELDS = ("warmup", "position_lr_max_steps", "deform_lr_max_step
 
 #: :meth:`Stage0Schedule.full`'s frame curriculum: the first third of GIC's dynamic phase (37k iterations)
 FULL_FRAME_CURRICULUM = 12_300
+#: :meth:`Stage0Schedule.full`'s silhouette-anchor weight (:mod:`toolkit.scene.silhouette_anchor`)
+FULL_LAMBDA_ANCHOR = 1.0
 
 
 @dataclass
@@ -131,6 +135,12 @@ class Stage0Schedule(DictSettings):
         lambda_dssim: SSIM weight λ (0.2).
         lambda_alpha: Weight of the alpha-mask L1 (GIC ``reg_alpha``: 1).
         lambda_scale: Weight of the mean scale (metres) after the warm-up (GIC ``reg_scale``: 10).
+        lambda_anchor: Weight of the silhouette anchor after the warm-up
+            (:mod:`toolkit.scene.silhouette_anchor`; GIC: none): the projected mean of the
+            Gaussians is drawn toward each mask's centroid, so a frame the deformation carried off
+            the object still has a gradient back. 0 (GIC, the tiny schedule) turns it off;
+            :meth:`full` uses 1.
+        anchor_tolerance: The anchor's dead zone, as a fraction of the image size.
         densify_from, densify_until, densify_interval: Densify at iterations ``it`` with
             ``densify_from < it < densify_until`` and ``it % densify_interval == 0``.
         opacity_reset_interval: Reset opacities at multiples of this after the warm-up (and
@@ -160,6 +170,8 @@ class Stage0Schedule(DictSettings):
     lambda_dssim: float = 0.2
     lambda_alpha: float = 1.0
     lambda_scale: float = 10.0
+    lambda_anchor: float = 0.0
+    anchor_tolerance: float = 0.02
     densify_from: int = 500
     densify_until: int = 15_000
     densify_interval: int = 100
@@ -178,17 +190,18 @@ class Stage0Schedule(DictSettings):
 
     @classmethod
     def full(cls) -> "Stage0Schedule":
-        """GIC's schedule for full-size scenes (the defaults), with one change: the frames of the
+        """GIC's schedule for full-size scenes (the defaults), with two changes: the frames of the
         dynamic phase are introduced in time order over its first third
-        (``frame_curriculum`` = :data:`FULL_FRAME_CURRICULUM`; GIC draws from all frames at once).
+        (``frame_curriculum`` = :data:`FULL_FRAME_CURRICULUM`; GIC draws from all frames at once),
+        and the silhouette anchor is on (``lambda_anchor`` = :data:`FULL_LAMBDA_ANCHOR`).
 
         Without it the deformation lost the object on fast throws: at 96 px and 2500 iterations
         (:meth:`compressed`), 12 of the 30 sliding-box scenes of the discovery benchmark fell to
         25-28 dB right after the warm-up and stayed there, with their Gaussians carried metres out
         of every view (the black background alone scores about 27 dB); 3 of them left the
-        continuum empty. See ``docs/limits.md``, "Stage 0 losing the object", for the curriculum's
-        effect on those scenes."""
-        return cls(frame_curriculum=FULL_FRAME_CURRICULUM)
+        continuum empty. On two of them the curriculum alone still lost the last three frames;
+        with the anchor no frame was lost (``docs/limits.md``, "Stage 0 losing the object")."""
+        return cls(frame_curriculum=FULL_FRAME_CURRICULUM, lambda_anchor=FULL_LAMBDA_ANCHOR)
 
     @classmethod
     def tiny(cls) -> "Stage0Schedule":
@@ -226,8 +239,9 @@ class Stage0Schedule(DictSettings):
 
     @classmethod
     def compressed(cls, iterations: int) -> "Stage0Schedule":
-        """GIC's full schedule with every iteration count (:data:`ITERATION_COUNT_FIELDS`: warm-up,
-        learning-rate decay lengths, densification window and interval, opacity resets, SH steps)
+        """:meth:`full`'s schedule with every iteration count (:data:`ITERATION_COUNT_FIELDS`: warm-up,
+        learning-rate decay lengths, densification window and interval, opacity resets, SH steps,
+        frame curriculum)
         scaled by ``iterations / 40_000``; rates, thresholds and loss weights unchanged.
         ``compressed(40_000) == full()``. Counts round to the nearest iteration, at least 1.
         ``projo4d run --stage0-iterations N`` and ``projo4d benchmark --stage0-iterations N`` use it
@@ -251,14 +265,15 @@ class Stage0Schedule(DictSettings):
 
 def compressed_settings(iterations: int) -> dict:
     """:meth:`Stage0Schedule.compressed` as a ``RunSettings.stage0`` mapping: ``preset`` "full",
-    ``iterations`` and the scaled :data:`ITERATION_COUNT_FIELDS`.
+    ``iterations``, the scaled :data:`ITERATION_COUNT_FIELDS` and the anchor weight (so that the
+    mapping alone, without the preset, gives the same schedule).
 
     Raises:
         ValueError: ``iterations`` is not an integer >= 100.
     """
     schedule = Stage0Schedule.compressed(iterations)
     return {"preset": "full", "iterations": schedule.iterations,
-            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}}
+            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}, "lambda_anchor": schedule.lambda_anchor}
 
 
 # ====================================================================== data
@@ -707,6 +722,11 @@ class Gaussians4DModule(pl.LightningModule):
         opt_d = torch.optim.Adam(self.deformation.parameters(), lr=s.deform_lr_init, eps=1e-15)
         return [opt_g, opt_d]
 
+    def _mask_centroids(self, views: TrainingViews) -> torch.Tensor:
+        if getattr(self, "_centroids_of", None) is not views:
+            self._centroids, self._centroids_of = mask_centroids(views.masks), views
+        return self._centroids
+
     def _device_views(self) -> TrainingViews:
         if self._views is None or self._views.device != self.gaussians.means.device:
             self._views = self.trainer.datamodule.training_views().to(self.gaussians.means.device)
@@ -752,6 +772,10 @@ class Gaussians4DModule(pl.LightningModule):
             loss = loss + s.lambda_alpha * alpha_loss
         if dynamic and s.lambda_scale > 0:
             loss = loss + s.lambda_scale * g.scales(d_ls).mean()
+        if dynamic and s.lambda_anchor > 0 and views.masks is not None:
+            weights = torch.sigmoid(g.opacity_logits.detach()).reshape(-1)
+            loss = loss + s.lambda_anchor * silhouette_anchor_loss(means, weights, cams, self._mask_centroids(views)[fi],
+                                                                   s.anchor_tolerance)
 
         opt_g.zero_grad(set_to_none=True)
         opt_d.zero_grad(set_to_none=True)
