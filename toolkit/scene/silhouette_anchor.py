@@ -6,9 +6,12 @@ stays lost (:mod:`toolkit.scene.coverage`). This term gives every frame a gradie
 opacity-weighted mean of the Gaussian centres, projected into each fitting camera, is drawn toward
 the centroid of that camera's mask, beyond a dead zone of ``tolerance`` (a fraction of the image
 size) so that a model on the object is not biased by the difference between a projected 3D mean
-and a silhouette's 2D centroid (perspective, self-occlusion).
+and a silhouette's 2D centroid (perspective, self-occlusion)::
 
-    L_anchor = mean_c ( max(0, |π_c(x̄) - m_c| / S - tolerance) )²       S = max(W, H) pixels
+    L_anchor = mean over cameras c of max(0, norm(P_c(x_mean) - m_c) / S - tolerance) ** 2
+
+with ``P_c`` the projection into camera ``c``, ``x_mean`` the opacity-weighted mean centre,
+``m_c`` the mask's centroid and ``S = max(W, H)`` pixels.
 """
 
 from __future__ import annotations
