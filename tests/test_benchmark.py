@@ -216,7 +216,11 @@ def test_tables_mean_std_of_known_numbers():
     (abl,) = t["ablation"]
     assert abl["cameras"] == [1, 3] and abl["cells"]["progressive|1"]["init_cd"]["mean"] == pytest.approx(0.3)
     md = tables_markdown(t)
-    assert "| progressive | 2 | **1.500 ± 0.500** |" in md
+    assert "| progressive | 2 | **1.500 ± 0.500** |" in md and "Stage 0 lost" not in md
+    # a fit whose stage 0 lost the object in some frames is counted and named
+    records[2]["stage0_lost_frames"] = [7, 8, 9]
+    lost = tables_markdown(build_tables(records, strategies=["sequential", "progressive"]))
+    assert "| sequential | 2 (1 with lost stage-0 frames) |" in lost and "- neo_hookean s0 3 views, sequential: frames 7-9" in lost
     assert "| sequential | 2 | 5.000 ± 1.000 |" in md
     assert "number of cameras" in md and "Pairwise comparisons" in md
 

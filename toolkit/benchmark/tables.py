@@ -155,6 +155,7 @@ def record_from_summary(run: Path, summary: dict, meta: Optional[dict] = None) -
                       "psnr": (images.get("all_cameras") or {}).get("psnr_per_frame")},
         "n_train": ev.get("n_train"),
         "diverged": bench.get("diverged"),
+        "stage0_lost_frames": (summary.get("stage0_coverage") or {}).get("lost_frames") or [],
         "run_dir": str(run),
     }
 
@@ -264,6 +265,8 @@ def build_tables(records: Sequence[dict], strategies: Optional[Sequence[str]] = 
                 row = {"strategy": st, **({"variant": var} if var else {}), "n": len(srecs),
                        "curriculum": srecs[0].get("curriculum"),
                        "diverged": [{"scene": r["scene"], **r["diverged"]} for r in srecs if r.get("diverged")],
+                       "stage0_lost": [{"scene": r["scene"], "frames": r["stage0_lost_frames"]} for r in srecs
+                                       if r.get("stage0_lost_frames")],
                        "values": {c["key"]: mean_std(_value(r, c["key"]) for r in srecs) for c in cols}}
                 if planned is not None:
                     row["planned"] = planned.get(f"{mat}|{cams}|{st}" + (f"|{var}" if var else ""))
@@ -373,6 +376,8 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
             n = f"{r['n']}" + (f"/{r['planned']}" if r.get("planned") else "")
             if r.get("diverged"):
                 n += f" ({len(r['diverged'])} diverged)"
+            if r.get("stage0_lost"):
+                n += f" ({len(r['stage0_lost'])} with lost stage-0 frames)"
             cells = []
             for c in cols:
                 cell = r["values"][c["key"]]
@@ -425,6 +430,18 @@ def tables_markdown(tables: dict, title: str = "Strategy comparison") -> str:
                   "there and their last valid estimate was evaluated (it is included in the means).", ""]
         for mat, cams, st, d in diverged:
             lines.append(f"- {mat} {d.get('scene')} {cams} views, {st}: iteration {d.get('step')}: {d.get('reason')}")
+        lines.append("")
+    lost = [(t["material"], t["cameras"], r["strategy"], d) for t in tables.get("tables", []) for r in t["rows"]
+            for d in r.get("stage0_lost") or []]
+    if lost:
+        from toolkit.scene.coverage import format_frames
+
+        lines += ["## Stage 0 lost the object", "",
+                  "In these fits stage 0's Gaussians covered under half of a fitting camera's mask in some training frames "
+                  "(`stage0/coverage.json`); those frames' surfaces were left out of the geometric loss, and the estimates "
+                  "rest on less data than the others (they are included in the means).", ""]
+        for mat, cams, st, d in lost:
+            lines.append(f"- {mat} {d['scene']} {cams} views, {st}: frames {format_frames(d['frames'])}")
         lines.append("")
     if tables.get("failures"):
         lines += ["## Failed jobs", ""]
