@@ -199,6 +199,9 @@ def test_compressed_schedule_scales_every_iteration_count():
     assert Stage0Schedule.compressed(100).frame_curriculum == 31 and Stage0Schedule().frame_curriculum == 0
     # so is the silhouette anchor (GIC and the tiny schedule: none)
     assert (full.lambda_anchor, ten.lambda_anchor, Stage0Schedule.tiny().lambda_anchor) == (1.0, 1.0, 0.0)
+    for name, bad in (("frame_curriculum", -1), ("lambda_anchor", -0.5), ("anchor_tolerance", float("nan"))):
+        with pytest.raises(ValueError, match=f"{name} must be >= 0"):
+            Stage0Schedule(**{name: bad})
     # rates and weights are not iteration counts: unchanged
     assert (ten.position_lr_init, ten.feature_lr, ten.lambda_dssim) == (full.position_lr_init, full.feature_lr, full.lambda_dssim)
     # the learning rate reaches its final value at the same fraction of the run

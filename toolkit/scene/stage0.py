@@ -187,6 +187,9 @@ class Stage0Schedule(DictSettings):
             raise ValueError(f"iterations must be >= 1 and warmup >= 0, got {self.iterations}, {self.warmup}")
         if self.densify_interval < 1 or self.opacity_reset_interval < 1 or self.sh_increase_interval < 1:
             raise ValueError("densify_interval, opacity_reset_interval and sh_increase_interval must be >= 1")
+        for name in ("frame_curriculum", "lambda_anchor", "anchor_tolerance"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
 
     @classmethod
     def full(cls) -> "Stage0Schedule":
