@@ -212,6 +212,50 @@ def test_compressed_schedule_scales_every_iteration_count():
         with pytest.raises(ValueError, match="iterations must be an integer >= 100"):
             Stage0Schedule.compressed(bad)
 
+def test_gaussian_cap_is_one_per_observed_object_pixel():
+    """``gaussians_per_observed_pixel`` caps the initial count and densification at that many
+    Gaussians per object pixel (mask > 0.5) over every training frame and camera; the smaller of
+    it and ``densification.max_gaussians`` wins; 0 (GIC) leaves the count uncapped; full() uses 1."""
+    from toolkit.scene.stage0 import TrainingViews
+
+    centre = (0.0, 0.0, 0.0)
+    cams = _ring_cameras(centre, size=32)[[0, 4, 8]]
+    masks = torch.stack([_sphere_masks(cams, centre, 0.06), _sphere_masks(cams, centre, 0.05)])  # (T=2, C=3, H, W)
+    observed = int((masks > 0.5).sum())
+    assert 200 < observed < 1000, observed  # about 30-60 px per view and frame, like a 96 px discovery scene
+    views = TrainingViews(cameras=cams, images=torch.zeros(2, 3, 32, 32, 3), masks=masks, times=torch.tensor([0.0, 0.1]),
+                          frames=[0, 1], camera_indices=[0, 4, 8])
+
+    def module(init_points=5000, **fields):
+        return Gaussians4DModule(Stage0Schedule(**fields), DeformationConfig.tiny(), sh_degree=0, renderer="torch",
+                                 init_points=init_points)
+
+    m = module(gaussians_per_observed_pixel=0.5)
+    cap = math.ceil(0.5 * observed)
+    assert m.gaussian_cap(views) == cap
+    assert module(gaussians_per_observed_pixel=0.5, densification={"max_gaussians": 10}).gaussian_cap(views) == 10
+    assert module().gaussian_cap(views) is None and Stage0Schedule.full().gaussians_per_observed_pixel == 1.0
+    m.initialize(views)
+    assert m.gaussians.n == cap  # 5000 asked for, the cap wins
+    # every Gaussian over the gradient threshold: densification stops at the cap
+    g = m.gaussians
+    opt = torch.optim.Adam([g.means, g.sh_dc, g.opacity_logits, g.log_scales], lr=0.0)
+    g.opacity_logits.data.fill_(3.0)
+    g.add_densification_stats(torch.ones(g.n), torch.ones(g.n, dtype=torch.bool), torch.ones(g.n))
+    assert m._densification(views).max_gaussians == cap
+    stats = g.densify_and_prune(m._densification(views), extent=1.0, optimizers=[opt])
+    assert stats["n"] == cap and stats["cloned"] + stats["split"] == 0
+    # without the cap the same step doubles them
+    free = module(init_points=50)
+    free.initialize(views)
+    free.gaussians.opacity_logits.data.fill_(3.0)
+    free.gaussians.add_densification_stats(torch.ones(50), torch.ones(50, dtype=torch.bool), torch.ones(50))
+    opt_free = torch.optim.Adam([free.gaussians.means, free.gaussians.sh_dc, free.gaussians.opacity_logits, free.gaussians.log_scales], lr=0.0)
+    assert free.gaussians.densify_and_prune(free._densification(views), extent=1.0, optimizers=[opt_free])["n"] >= 100
+    with pytest.raises(ValueError, match="gaussians_per_observed_pixel must be >= 0"):
+        Stage0Schedule(gaussians_per_observed_pixel=-1)
+
+
 def test_cached_ssim_matches_the_metric():
     from toolkit.metrics import ssim_torch
     from toolkit.scene.stage0 import _SSIM

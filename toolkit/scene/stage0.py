@@ -44,6 +44,7 @@ from __future__ import annotations
 import logging
 import math
 import random
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Literal, Optional, Sequence
@@ -111,6 +112,8 @@ ITERATION_COUNT_FIELDS = ("warmup", "position_lr_max_steps", "deform_lr_max_step
 FULL_FRAME_CURRICULUM = 12_300
 #: :meth:`Stage0Schedule.full`'s silhouette-anchor weight (:mod:`toolkit.scene.silhouette_anchor`)
 FULL_LAMBDA_ANCHOR = 1.0
+#: :meth:`Stage0Schedule.full`'s cap: one Gaussian per observed object pixel
+FULL_GAUSSIANS_PER_OBSERVED_PIXEL = 1.0
 
 
 @dataclass
@@ -151,6 +154,12 @@ class Stage0Schedule(DictSettings):
             0 (GIC) draws from all frames at once. Helps when the motion is larger than the
             object: far frames then do not overlap the undeformed Gaussians, and their offsets
             can overshoot out of every view and be lost.
+        gaussians_per_observed_pixel: Cap on the number of Gaussians, per object pixel the
+            training views observe (mask > 0.5, summed over every training frame and fitting
+            camera); 0 (GIC) leaves the count to the gradient threshold. :meth:`full` uses 1:
+            more Gaussians than observed object pixels cannot be told apart by the images, and
+            every physics iteration renders them all. The cap also bounds the initial count and
+            combines with ``densification.max_gaussians`` (the smaller wins).
         densification: Thresholds (:class:`DensificationConfig`).
         log_every: Log losses every this many iterations (each log is a host synchronization).
     """
@@ -178,6 +187,7 @@ class Stage0Schedule(DictSettings):
     opacity_reset_interval: int = 3_000
     sh_increase_interval: int = 1_000
     frame_curriculum: int = 0
+    gaussians_per_observed_pixel: float = 0.0
     densification: DensificationConfig = field(default_factory=DensificationConfig)
     log_every: int = 100
 
@@ -187,24 +197,31 @@ class Stage0Schedule(DictSettings):
             raise ValueError(f"iterations must be >= 1 and warmup >= 0, got {self.iterations}, {self.warmup}")
         if self.densify_interval < 1 or self.opacity_reset_interval < 1 or self.sh_increase_interval < 1:
             raise ValueError("densify_interval, opacity_reset_interval and sh_increase_interval must be >= 1")
-        for name in ("frame_curriculum", "lambda_anchor", "anchor_tolerance"):
+        for name in ("frame_curriculum", "lambda_anchor", "anchor_tolerance", "gaussians_per_observed_pixel"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
 
     @classmethod
     def full(cls) -> "Stage0Schedule":
-        """GIC's schedule for full-size scenes (the defaults), with two changes: the frames of the
+        """GIC's schedule for full-size scenes (the defaults), with three changes: the frames of the
         dynamic phase are introduced in time order over its first third
         (``frame_curriculum`` = :data:`FULL_FRAME_CURRICULUM`; GIC draws from all frames at once),
-        and the silhouette anchor is on (``lambda_anchor`` = :data:`FULL_LAMBDA_ANCHOR`).
+        the silhouette anchor is on (``lambda_anchor`` = :data:`FULL_LAMBDA_ANCHOR`), and the
+        number of Gaussians is capped at one per observed object pixel
+        (``gaussians_per_observed_pixel`` = :data:`FULL_GAUSSIANS_PER_OBSERVED_PIXEL`).
 
         Without it the deformation lost the object on fast throws: at 96 px and 2500 iterations
         (:meth:`compressed`), 12 of the 30 sliding-box scenes of the discovery benchmark fell to
         25-28 dB right after the warm-up and stayed there, with their Gaussians carried metres out
         of every view (the black background alone scores about 27 dB); 3 of them left the
         continuum empty. On two of them the curriculum alone still lost the last three frames;
-        with the anchor no frame was lost (``docs/limits.md``, "Stage 0 losing the object")."""
-        return cls(frame_curriculum=FULL_FRAME_CURRICULUM, lambda_anchor=FULL_LAMBDA_ANCHOR)
+        with the anchor no frame was lost (``docs/limits.md``, "Stage 0 losing the object").
+
+        Without the cap the same 96 px scenes, whose object covers about 90 pixels a view,
+        grew 27k-104k Gaussians, 100-400 per observed pixel, and every physics iteration
+        rendered them all (no base fit finished in 17 minutes on a CPU core)."""
+        return cls(frame_curriculum=FULL_FRAME_CURRICULUM, lambda_anchor=FULL_LAMBDA_ANCHOR,
+                   gaussians_per_observed_pixel=FULL_GAUSSIANS_PER_OBSERVED_PIXEL)
 
     @classmethod
     def tiny(cls) -> "Stage0Schedule":
@@ -268,7 +285,7 @@ class Stage0Schedule(DictSettings):
 
 def compressed_settings(iterations: int) -> dict:
     """:meth:`Stage0Schedule.compressed` as a ``RunSettings.stage0`` mapping: ``preset`` "full",
-    ``iterations``, the scaled :data:`ITERATION_COUNT_FIELDS` and the anchor weight (so that the
+    ``iterations``, the scaled :data:`ITERATION_COUNT_FIELDS`, the anchor weight and the Gaussian cap (so that the
     mapping alone, without the preset, gives the same schedule).
 
     Raises:
@@ -276,7 +293,8 @@ def compressed_settings(iterations: int) -> dict:
     """
     schedule = Stage0Schedule.compressed(iterations)
     return {"preset": "full", "iterations": schedule.iterations,
-            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}, "lambda_anchor": schedule.lambda_anchor}
+            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}, "lambda_anchor": schedule.lambda_anchor,
+            "gaussians_per_observed_pixel": schedule.gaussians_per_observed_pixel}
 
 
 # ====================================================================== data
@@ -644,6 +662,8 @@ class Gaussians4DModule(pl.LightningModule):
             if masks0 is None:
                 raise ValueError("init='hull' needs masks; use init='box' with init_bbox for scenes without masks")
             n = int(hp.init_points or 2000)
+            cap = self.gaussian_cap(views)
+            n = n if cap is None else max(1, min(n, cap))
             pts = visual_hull_points(cams, masks0, n, bbox=(lo, hi), resolution=hp.hull_resolution, seed=self.seed)
             colors = _colors_from_views(pts, cams, views.images[0].cpu(), masks0)
         else:
@@ -655,7 +675,8 @@ class Gaussians4DModule(pl.LightningModule):
         t = views.times.cpu()
         self.deformation.set_normalization(lo, hi, float(t.min()), float(t.max()))
         self._initialized = True
-        log.info("stage 0: %d initial Gaussians (%s init), box %s..%s m", n, hp.init, lo.tolist(), hi.tolist())
+        log.info("stage 0: %d initial Gaussians (%s init), at most %s, box %s..%s m", n, hp.init, self.gaussian_cap(views),
+                 lo.tolist(), hi.tolist())
 
     # ------------------------------------------------------------------ queries
 
@@ -724,6 +745,24 @@ class Gaussians4DModule(pl.LightningModule):
         opt_g = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
         opt_d = torch.optim.Adam(self.deformation.parameters(), lr=s.deform_lr_init, eps=1e-15)
         return [opt_g, opt_d]
+
+    def gaussian_cap(self, views: TrainingViews) -> Optional[int]:
+        """The most Gaussians densification may grow to: the smaller of
+        ``densification.max_gaussians`` and ``gaussians_per_observed_pixel`` times the object
+        pixels (mask > 0.5) of every training frame and fitting camera; None when neither applies."""
+        s = self.schedule
+        caps = [] if s.densification.max_gaussians is None else [int(s.densification.max_gaussians)]
+        if s.gaussians_per_observed_pixel > 0 and views.masks is not None:
+            observed = int((views.masks > 0.5).sum())
+            caps.append(max(1, int(math.ceil(s.gaussians_per_observed_pixel * observed))))
+        return min(caps) if caps else None
+
+    def _densification(self, views: TrainingViews) -> DensificationConfig:
+        if getattr(self, "_densification_of", None) is not views:
+            cap = self.gaussian_cap(views)
+            self._densification_cfg = dataclasses.replace(self.schedule.densification, max_gaussians=cap)
+            self._densification_of = views
+        return self._densification_cfg
 
     def _mask_centroids(self, views: TrainingViews) -> torch.Tensor:
         if getattr(self, "_centroids_of", None) is not views:
@@ -809,7 +848,7 @@ class Gaussians4DModule(pl.LightningModule):
                     else None
                 )
                 gen = torch.Generator().manual_seed(self.seed * 7_919 + step)
-                stats = g.densify_and_prune(s.densification, float(self.extent), [opt_g], max_screen_px=max_px, generator=gen)
+                stats = g.densify_and_prune(self._densification(views), float(self.extent), [opt_g], max_screen_px=max_px, generator=gen)
                 log.debug("iteration %d: densification %s", it, stats)
             if it > s.warmup and it % s.opacity_reset_interval == 0:
                 self.reset_guard.reset(g, [opt_g], s.densification.opacity_reset_value, it)
