@@ -295,6 +295,17 @@ def _stage0_arg(text: str):
     return json.loads(text) if text.strip().startswith("{") else text
 
 
+def _stage0_label(text: Optional[str]) -> str:
+    """A short name of ``--stage0`` for the table's title (a JSON schedule by its preset and length)."""
+    if not text:
+        return "`STAGE0_SCHEDULES`"
+    arg = _stage0_arg(text)
+    if isinstance(arg, dict):
+        extra = ", ".join(f"{k} {v}" for k, v in arg.items() if k in ("lambda_anchor", "gaussians_per_observed_pixel"))
+        return f"`{arg.get('preset', 'full')}` compressed to {arg.get('iterations', '?')} iterations" + (f" ({extra})" if extra else "")
+    return f"`{arg}`"
+
+
 def update_docs(table: str, small: bool, geometry: str = "oracle") -> None:
     """Replace the page's section of this run size and geometry with ``table``."""
     start, end = MARKS[(small, geometry)]
@@ -427,7 +438,7 @@ def main(argv=None) -> int:
     summary = summarize(records, thresholds)
     title = "CPU smoke run (`--small`, tiny scenes)" if args.small else "GPU run (full-size scenes)"
     if args.geometry == "stage0":
-        title += f", from images (stage-0 geometry `{args.stage0 or 'STAGE0_SCHEDULES'}`, positions held still)"
+        title += f", from images (stage-0 geometry {_stage0_label(args.stage0)}, positions held still)"
     table = markdown(summary, title)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     (out / "discovery_benchmark.md").write_text(table)

@@ -1,0 +1,27 @@
+#!/bin/bash
+# The full-size discovery benchmark from images on a GPU machine: one shard per scene, stage 0 and
+# its continuum on the GPUs (round robin), base fit and discovery on one CPU core each.
+#
+#   bash benchmarks/discovery_from_images.sh OUT [SHARDS] [STAGE0_ITERATIONS]
+#
+# Shards run in the background (logs in OUT/logs); when every shard has exited, tabulate with
+#   python benchmarks/discovery.py --report-only --calibrate --geometry stage0 --stage0 "$(cat OUT/stage0.json)" --out OUT
+# A rerun skips finished scenes (OUT/results_*.jsonl) and reuses finished stage 0s.
+set -eu
+OUT=${1:?usage: discovery_from_images.sh OUT [SHARDS] [STAGE0_ITERATIONS]}
+N=${2:-60}
+ITERS=${3:-2500}
+mkdir -p "$OUT/logs"
+python -c "import json; from toolkit.scene.stage0 import compressed_settings; print(json.dumps(compressed_settings($ITERS)))" > "$OUT/stage0.json"
+S0=$(cat "$OUT/stage0.json")
+NG=$(nvidia-smi -L 2>/dev/null | wc -l)
+if [ "$NG" -lt 1 ]; then
+  echo "no GPU found (nvidia-smi -L): stage 0 at full size needs one" >&2
+  exit 2
+fi
+for i in $(seq 0 $((N - 1))); do
+  CUDA_VISIBLE_DEVICES=$((i % NG)) OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 setsid nohup python benchmarks/discovery.py \
+    --geometry stage0 --stage0 "$S0" --stage0-device cuda --device cpu --no-reports --shard "$i/$N" --out "$OUT" \
+    > "$OUT/logs/shard_$i.log" 2>&1 < /dev/null &
+done
+echo "launched $N shards on $NG GPUs and $(nproc) cores; logs in $OUT/logs"
