@@ -5,7 +5,7 @@ Generates one full-size scene of the synthetic suite (``sample_scene_spec(family
 drawn by the generator's mesh renderer), then runs the whole pipeline on it, ``projo4d run
 --config configs/synthetic_<family>.yaml`` (3 fitted cameras, ProJo4D, the config's simulation
 settings), once per stage-0 budget. A budget of N iterations is GIC's 40k schedule with every
-iteration count scaled by N / 40k (:meth:`toolkit.scene.stage0.Stage0Schedule.compressed`), so
+iteration count scaled by N / 40k (:meth:`toolkit.scene.stage0_schedule.Stage0Schedule.compressed`), so
 the trade between stage-0 time and accuracy is visible (``projo4d run --stage0-iterations N``). Each run is a fresh process: its time
 includes imports and Warp's kernel compile (from the cache when it is warm; ``cold_cache`` says
 whether the cache was emptied first).

@@ -52,7 +52,7 @@ class RunSettings:
         n_train: training frames (default: the scene's split, else min(14, T)).
         downscale: integer image downscale factor.
         stage0: ``"full"`` (GIC: 40k iterations), ``"tiny"`` (tests, demo) or a dict of
-            :class:`toolkit.scene.stage0.Stage0Schedule` fields (plus ``preset``: the network and
+            :class:`toolkit.scene.stage0_schedule.Stage0Schedule` fields (plus ``preset``: the network and
             initialization preset they modify, default ``"full"``).
         geometry: ``"stage0"`` (the method) or ``"oracle"`` (ground-truth geometry, for ablations).
         sim: :class:`toolkit.mpm.SimConfig` fields for the physics stages.

@@ -289,7 +289,7 @@ def strategy_options(entry: StrategyEntry, iterations: dict, material: str) -> d
 
 def scaled_stage0(iterations: int) -> dict:
     """GIC's full stage-0 schedule shortened to ``iterations``, as a ``RunSettings.stage0``
-    mapping (:func:`toolkit.scene.stage0.compressed_settings`): the same phases in the same order,
+    mapping (:func:`toolkit.scene.stage0_schedule.compressed_settings`): the same phases in the same order,
     a cheaper, less converged stage 0 (state it when reporting).
 
     Raises:

@@ -315,7 +315,7 @@ def build_continuum(
         model: A :class:`toolkit.scene.stage0.Gaussians4DModule` (or anything with
             ``gaussians_at(time)``), static :class:`renderers.base.Gaussians`, a list of
             Gaussians per frame, or a callable ``time -> Gaussians``.
-        cameras: The fitting cameras (C), or a :class:`toolkit.scene.stage0.TrainingViews`
+        cameras: The fitting cameras (C), or a :class:`toolkit.scene.stage0_data.TrainingViews`
             (then ``masks`` and ``times`` default to its own).
         masks: (T, C, H, W) (or (C, H, W) for one frame) object masks in [0, 1]; None: use the
             rendered alpha alone.

@@ -26,7 +26,7 @@ LOST_BELOW = 0.5
 def mask_coverage(module: Any, views: Any, alpha_min: float = 0.5) -> torch.Tensor:
     """(T, C) float32 on the CPU: per training frame and camera, the fraction of mask pixels
     (mask > 0.5) where the rendered alpha of ``module.gaussians_at(time)`` exceeds ``alpha_min``;
-    NaN where the mask is empty. ``views`` is a :class:`~toolkit.scene.stage0.TrainingViews` with
+    NaN where the mask is empty. ``views`` is a :class:`~toolkit.scene.stage0_data.TrainingViews` with
     masks; ``module`` a :class:`~toolkit.scene.stage0.Gaussians4DModule` (on the views' device)."""
     if views.masks is None:
         raise ValueError("mask coverage needs the training views' masks")

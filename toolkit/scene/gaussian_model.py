@@ -21,7 +21,7 @@ Adaptive density control follows 3DGS / GIC (``scene/gaussian_model.py``): every
 scales divided by ``split_scale_factor * split_count`` otherwise; then Gaussians with opacity below
 ``min_opacity`` (and, late in training, Gaussians too large on screen or in the world) are pruned.
 The screen-space gradient is accumulated by the training loop (see
-:func:`toolkit.scene.stage0.screen_space_stats`) in NDC units as in 3DGS.
+:func:`toolkit.scene.stage0_losses.screen_space_stats`) in NDC units as in 3DGS.
 """
 
 from __future__ import annotations

@@ -13,14 +13,17 @@ are ``x_t = x_0 + Δ(x_0, t)``; during the static warm-up (the first ``warmup`` 
 0 only) ``Δ`` is not evaluated. SSIM is the 3DGS definition (:func:`toolkit.metrics.ssim_torch`,
 evaluated with a cached window).
 
-Schedule and learning rates (:class:`Stage0Schedule`): :meth:`Stage0Schedule.full` is GIC's
-(``arguments/__init__.py::OptimizationParams``): 40k iterations with a 3k static warm-up,
+Schedule and learning rates (:class:`~toolkit.scene.stage0_schedule.Stage0Schedule`, in
+:mod:`toolkit.scene.stage0_schedule`; views and data module in :mod:`toolkit.scene.stage0_data`):
+the dataclass defaults are GIC's (``arguments/__init__.py::OptimizationParams``): 40k iterations with a 3k static warm-up,
 position lr 1.6e-4 x 5 decaying exponentially to 1.6e-6 x 5 over 30k iterations (GIC's hard-coded
 ``spatial_lr_scale = 5``), deformation lr with the same values over 40k, colour 2.5e-3 (1/20 for
 higher SH bands), opacity 0.1, scale 1e-3 x 5, rotation 1e-3, Adam with eps 1e-15; densification
 every 100 iterations from 500 to 15k with gradient threshold 1.5e-4, opacity reset every 3k
 iterations after the warm-up, one SH degree more every 1000 iterations.
-:meth:`Stage0Schedule.tiny` is a short schedule for CPU tests and the demo.
+:meth:`Stage0Schedule.full` adds a frame curriculum, the silhouette anchor and a cap of one
+Gaussian per observed object pixel; :meth:`Stage0Schedule.tiny` is a short schedule for CPU tests
+and the demo.
 
 Differences from GIC: GIC renders one (camera, frame) view per iteration; here every fitting
 camera of the frame is rendered in one batched call (DESIGN section 9), so an iteration sees C
@@ -45,21 +48,27 @@ import logging
 import math
 import random
 import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Literal, Optional, Sequence
+from typing import Any, Literal, Optional, Sequence
 
-import numpy as np
 import pytorch_lightning as pl
 import torch
-from torch.utils.data import DataLoader, IterableDataset
 
 from renderers import RENDERERS, get_renderer
 from renderers.base import Gaussians, RenderOutput
 from toolkit.scene.silhouette_anchor import mask_centroids, silhouette_anchor_loss
+from toolkit.scene.stage0_data import Stage0DataModule, TrainingViews
+from toolkit.scene.stage0_losses import _SSIM, screen_space_stats
+from toolkit.scene.stage0_schedule import (  # noqa: F401  (re-exported: the public names of stage 0)
+    FULL_FRAME_CURRICULUM,
+    FULL_GAUSSIANS_PER_OBSERVED_PIXEL,
+    FULL_LAMBDA_ANCHOR,
+    ITERATION_COUNT_FIELDS,
+    Stage0Schedule,
+    compressed_settings,
+)
 from toolkit.cameras import Cameras
 from toolkit.data.exclusion import apply_keep
-from toolkit.settings import DictSettings
 from toolkit.scene.deformation import DeformationConfig, DeformationNetwork
 from toolkit.scene.gaussian_model import DensificationConfig, GaussianModel
 from toolkit.scene.stage0_checkpoint import Stage0Checkpoint
@@ -99,433 +108,6 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -
         return max(lr_init, 0.0) if max_steps <= 0 or step < max_steps else max(lr_final, 0.0)
     t = min(max(step / max(max_steps, 1), 0.0), 1.0)
     return math.exp((1.0 - t) * math.log(lr_init) + t * math.log(lr_final))
-
-
-# ====================================================================== schedule
-
-
-#: the fields of :class:`Stage0Schedule` that count iterations (scaled by :meth:`Stage0Schedule.compressed`)
-ITERATION_COUNT_FIELDS = ("warmup", "position_lr_max_steps", "deform_lr_max_steps", "densify_from", "densify_until",
-                          "densify_interval", "opacity_reset_interval", "sh_increase_interval", "frame_curriculum")
-
-#: :meth:`Stage0Schedule.full`'s frame curriculum: the first third of GIC's dynamic phase (37k iterations)
-FULL_FRAME_CURRICULUM = 12_300
-#: :meth:`Stage0Schedule.full`'s silhouette-anchor weight (:mod:`toolkit.scene.silhouette_anchor`)
-FULL_LAMBDA_ANCHOR = 1.0
-#: :meth:`Stage0Schedule.full`'s cap: one Gaussian per observed object pixel
-FULL_GAUSSIANS_PER_OBSERVED_PIXEL = 1.0
-
-
-@dataclass
-class Stage0Schedule(DictSettings):
-    settings_name = "Stage0Schedule settings"
-
-    """Iterations, learning rates, loss weights and densification settings of stage 0.
-
-    Iteration numbers follow GIC's 1-based convention: iteration ``it = step + 1``.
-
-    Attributes:
-        iterations: Total iterations (GIC 40k).
-        warmup: Static iterations on frame 0 before the deformation is used (GIC 3k).
-        position_lr_init, position_lr_final, position_lr_max_steps: Exponential decay of the
-            canonical positions' lr (GIC 1.6e-4 x 5 -> 1.6e-6 x 5 over 30k).
-        deform_lr_init, deform_lr_final, deform_lr_max_steps: Same for the deformation network
-            (GIC: same values over 40k).
-        feature_lr: lr of the SH DC coefficients (GIC 2.5e-3); higher bands use 1/20 of it.
-        opacity_lr: lr of the opacity logits (GIC 0.1; 3DGS 0.05).
-        scaling_lr: lr of the log-scales (GIC 1e-3 x 5).
-        rotation_lr: lr of the quaternions (GIC 1e-3; anisotropic Gaussians only).
-        lambda_dssim: SSIM weight λ (0.2).
-        lambda_alpha: Weight of the alpha-mask L1 (GIC ``reg_alpha``: 1).
-        lambda_scale: Weight of the mean scale (metres) after the warm-up (GIC ``reg_scale``: 10).
-        lambda_anchor: Weight of the silhouette anchor after the warm-up
-            (:mod:`toolkit.scene.silhouette_anchor`; GIC: none): the projected mean of the
-            Gaussians is drawn toward each mask's centroid, so a frame the deformation carried off
-            the object still has a gradient back. 0 (GIC, the tiny schedule) turns it off;
-            :meth:`full` uses 1.
-        anchor_tolerance: The anchor's dead zone, as a fraction of the image size.
-        densify_from, densify_until, densify_interval: Densify at iterations ``it`` with
-            ``densify_from < it < densify_until`` and ``it % densify_interval == 0``.
-        opacity_reset_interval: Reset opacities at multiples of this after the warm-up (and
-            before ``densify_until``); screen-size pruning starts after the first interval.
-        sh_increase_interval: One more active SH degree every this many iterations.
-        frame_curriculum: Iterations after the warm-up during which the frames drawn grow from
-            the first one to all training frames (frames ``[0, w)`` with ``w`` rising linearly);
-            0 (GIC) draws from all frames at once. Helps when the motion is larger than the
-            object: far frames then do not overlap the undeformed Gaussians, and their offsets
-            can overshoot out of every view and be lost.
-        gaussians_per_observed_pixel: Cap on the number of Gaussians, per object pixel the
-            training views observe (mask > 0.5, summed over every training frame and fitting
-            camera); 0 (GIC) leaves the count to the gradient threshold. :meth:`full` uses 1:
-            more Gaussians than observed object pixels cannot be told apart by the images, and
-            every physics iteration renders them all. The cap also bounds the initial count and
-            combines with ``densification.max_gaussians`` (the smaller wins).
-        densification: Thresholds (:class:`DensificationConfig`).
-        log_every: Log losses every this many iterations (each log is a host synchronization).
-    """
-
-    iterations: int = 40_000
-    warmup: int = 3_000
-    position_lr_init: float = 1.6e-4 * 5
-    position_lr_final: float = 1.6e-6 * 5
-    position_lr_max_steps: int = 30_000
-    deform_lr_init: float = 1.6e-4 * 5
-    deform_lr_final: float = 1.6e-6 * 5
-    deform_lr_max_steps: int = 40_000
-    feature_lr: float = 2.5e-3
-    opacity_lr: float = 0.1
-    scaling_lr: float = 1e-3 * 5
-    rotation_lr: float = 1e-3
-    lambda_dssim: float = 0.2
-    lambda_alpha: float = 1.0
-    lambda_scale: float = 10.0
-    lambda_anchor: float = 0.0
-    anchor_tolerance: float = 0.02
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_interval: int = 100
-    opacity_reset_interval: int = 3_000
-    sh_increase_interval: int = 1_000
-    frame_curriculum: int = 0
-    gaussians_per_observed_pixel: float = 0.0
-    densification: DensificationConfig = field(default_factory=DensificationConfig)
-    log_every: int = 100
-
-    def __post_init__(self) -> None:
-        self.densification = DensificationConfig.from_dict(self.densification)
-        if self.iterations < 1 or self.warmup < 0:
-            raise ValueError(f"iterations must be >= 1 and warmup >= 0, got {self.iterations}, {self.warmup}")
-        if self.densify_interval < 1 or self.opacity_reset_interval < 1 or self.sh_increase_interval < 1:
-            raise ValueError("densify_interval, opacity_reset_interval and sh_increase_interval must be >= 1")
-        for name in ("frame_curriculum", "lambda_anchor", "anchor_tolerance", "gaussians_per_observed_pixel"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-
-    @classmethod
-    def full(cls) -> "Stage0Schedule":
-        """GIC's schedule for full-size scenes (the defaults), with three changes: the frames of the
-        dynamic phase are introduced in time order over its first third
-        (``frame_curriculum`` = :data:`FULL_FRAME_CURRICULUM`; GIC draws from all frames at once),
-        the silhouette anchor is on (``lambda_anchor`` = :data:`FULL_LAMBDA_ANCHOR`), and the
-        number of Gaussians is capped at one per observed object pixel
-        (``gaussians_per_observed_pixel`` = :data:`FULL_GAUSSIANS_PER_OBSERVED_PIXEL`).
-
-        Without it the deformation lost the object on fast throws: at 96 px and 2500 iterations
-        (:meth:`compressed`), 12 of the 30 sliding-box scenes of the discovery benchmark fell to
-        25-28 dB right after the warm-up and stayed there, with their Gaussians carried metres out
-        of every view (the black background alone scores about 27 dB); 3 of them left the
-        continuum empty. On two of them the curriculum alone still lost the last three frames;
-        with the anchor no frame was lost (``docs/limits.md``, "Stage 0 losing the object").
-
-        Without the cap the same 96 px scenes, whose object covers about 90 pixels a view,
-        grew 27k-104k Gaussians, 100-400 per observed pixel, and every physics iteration
-        rendered them all (no base fit finished in 17 minutes on a CPU core)."""
-        return cls(frame_curriculum=FULL_FRAME_CURRICULUM, lambda_anchor=FULL_LAMBDA_ANCHOR,
-                   gaussians_per_observed_pixel=FULL_GAUSSIANS_PER_OBSERVED_PIXEL)
-
-    @classmethod
-    def tiny(cls) -> "Stage0Schedule":
-        """A CPU-sized schedule (tests, demo): 600 iterations, 80 of them static warm-up, on
-        48-64 px images with 1000-2500 Gaussians (about 35 s on one CPU core at 64 px).
-        Learning rates are raised (x4 for positions and the deformation network, x4 for colours)
-        and decay 10x over the run, so the short run converges; densification runs every 40
-        iterations until about halfway through the dynamic phase (GIC: until 15k of 40k) and is
-        capped at 2500 Gaussians; no opacity reset (recovering from one takes thousands of
-        iterations). The frames of the dynamic phase are introduced progressively over its first
-        third (``frame_curriculum``): drawing far frames from the start made Adam overshoot their
-        offsets in some runs until those frames left every view (1 run in 4 on the test scene),
-        after which no gradient could bring them back."""
-        return cls(
-            iterations=600,
-            warmup=80,
-            position_lr_init=3.2e-3,
-            position_lr_final=3.2e-4,
-            position_lr_max_steps=600,
-            deform_lr_init=3.2e-3,
-            deform_lr_final=3.2e-4,
-            deform_lr_max_steps=600,
-            feature_lr=1e-2,
-            opacity_lr=0.05,
-            scaling_lr=5e-3,
-            densify_from=40,
-            densify_until=320,
-            densify_interval=40,
-            opacity_reset_interval=100_000,
-            sh_increase_interval=100_000,
-            frame_curriculum=170,
-            densification=DensificationConfig(grad_threshold=1.5e-4, max_gaussians=2500),
-            log_every=50,
-        )
-
-    @classmethod
-    def compressed(cls, iterations: int) -> "Stage0Schedule":
-        """:meth:`full`'s schedule with every iteration count (:data:`ITERATION_COUNT_FIELDS`: warm-up,
-        learning-rate decay lengths, densification window and interval, opacity resets, SH steps,
-        frame curriculum)
-        scaled by ``iterations / 40_000``; rates, thresholds and loss weights unchanged.
-        ``compressed(40_000) == full()``. Counts round to the nearest iteration, at least 1.
-        ``projo4d run --stage0-iterations N`` and ``projo4d benchmark --stage0-iterations N`` use it
-        (through :func:`compressed_settings`; a cheaper, less converged stage 0:
-        ``benchmarks/whole_scene.py`` measures the trade, issue #16).
-
-        Raises:
-            ValueError: ``iterations`` is not an integer >= 100.
-        """
-        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 100:
-            raise ValueError(f"iterations must be an integer >= 100, got {iterations!r}")
-        base = cls.full()
-        f = iterations / base.iterations
-        scaled = {key: max(1, int(round(getattr(base, key) * f))) if getattr(base, key) else 0 for key in ITERATION_COUNT_FIELDS}
-        return cls(**{**base.to_dict(), "iterations": iterations, **scaled})
-
-    @classmethod
-    def defaults(cls) -> "Stage0Schedule":
-        return cls.full()
-
-
-def compressed_settings(iterations: int) -> dict:
-    """:meth:`Stage0Schedule.compressed` as a ``RunSettings.stage0`` mapping: ``preset`` "full",
-    ``iterations``, the scaled :data:`ITERATION_COUNT_FIELDS`, the anchor weight and the Gaussian cap (so that the
-    mapping alone, without the preset, gives the same schedule).
-
-    Raises:
-        ValueError: ``iterations`` is not an integer >= 100.
-    """
-    schedule = Stage0Schedule.compressed(iterations)
-    return {"preset": "full", "iterations": schedule.iterations,
-            **{key: getattr(schedule, key) for key in ITERATION_COUNT_FIELDS}, "lambda_anchor": schedule.lambda_anchor,
-            "gaussians_per_observed_pixel": schedule.gaussians_per_observed_pixel}
-
-
-# ====================================================================== data
-
-
-@dataclass
-class TrainingViews:
-    """All fitting views of a scene, as tensors (cached on the training device).
-
-    Attributes:
-        cameras: The C fitting cameras, scaled to the image size.
-        images: (T, C, H, W, 3) float32 in [0, 1]; masked on black when masks exist.
-        masks: (T, C, H, W) float32 object masks in [0, 1], or None.
-        times: (T,) float32 frame times, seconds.
-        frames: Scene frame index of each of the T frames.
-        camera_indices: Scene camera index of each of the C cameras.
-        keep: (C, H, W) float32 loss weights (0 = pixel excluded: PAC-NeRF frame -2 masks,
-            :mod:`toolkit.data.exclusion`), or None.
-    """
-
-    cameras: Cameras
-    images: torch.Tensor
-    masks: Optional[torch.Tensor]
-    times: torch.Tensor
-    frames: list[int]
-    camera_indices: list[int]
-    keep: Optional[torch.Tensor] = None
-
-    @property
-    def n_frames(self) -> int:
-        return int(self.images.shape[0])
-
-    @property
-    def n_cameras(self) -> int:
-        return int(self.images.shape[1])
-
-    @property
-    def device(self) -> torch.device:
-        return self.images.device
-
-    def to(self, device: torch.device | str) -> "TrainingViews":
-        return TrainingViews(
-            cameras=self.cameras.to(device),
-            images=self.images.to(device),
-            masks=None if self.masks is None else self.masks.to(device),
-            times=self.times.to(device),
-            frames=list(self.frames),
-            camera_indices=list(self.camera_indices),
-            keep=None if self.keep is None else self.keep.to(device),
-        )
-
-    @classmethod
-    def from_datamodule(cls, dm: Any, composite_on_black: bool = True) -> "TrainingViews":
-        """Load the training split (fitting cameras x training frames) of a
-        :class:`toolkit.data.datamodule.MultiViewDataModule`."""
-        cams_idx, frames = list(dm.train_cameras), list(dm.train_frames)
-        ds = dm.dataset(cams_idx, frames)
-        C, T = len(cams_idx), len(frames)
-        imgs, masks = [], []
-        has_masks = True
-        for i in range(len(ds)):
-            item = ds[i]
-            imgs.append(item["image"])
-            if "mask" in item:
-                masks.append(item["mask"])
-            else:
-                has_masks = False
-        H, W = imgs[0].shape[:2]
-        images = torch.stack(imgs).reshape(T, C, H, W, 3).float()
-        mask_t = torch.stack(masks).reshape(T, C, H, W).float() if has_masks and masks else None
-        if mask_t is not None and composite_on_black:
-            images = images * mask_t[..., None]
-        times = torch.as_tensor(np.asarray(dm.scene.times)[frames], dtype=torch.float32)
-        from toolkit.data.exclusion import keep_weights
-
-        keep = keep_weights(dm.scene, cams_idx, size=(H, W))
-        return cls(dm.cameras[cams_idx], images, mask_t, times, frames, cams_idx, keep)
-
-
-class _StepStream(IterableDataset):
-    """Yields the module's iteration numbers from its current step to the end of the schedule."""
-
-    def __init__(self, dm: "Stage0DataModule"):
-        super().__init__()
-        self.dm = dm
-
-    def _range(self) -> range:
-        module = self.dm.trainer.lightning_module if self.dm.trainer is not None else None
-        if module is None:
-            return range(0)
-        stop = module.schedule.iterations if module.stop_at is None else min(module.stop_at, module.schedule.iterations)
-        return range(module.step, max(module.step, stop))
-
-    def __iter__(self) -> Iterator[int]:
-        return iter(self._range())
-
-
-class _StepLoader(DataLoader):
-    """The step stream's loader. It is resumable by construction (the stream restarts at the
-    module's restored step), which ``state_dict``/``load_state_dict`` tell Lightning."""
-
-    def state_dict(self) -> dict:
-        return {"resumes_at_module_step": True}
-
-    def load_state_dict(self, state_dict: dict) -> None:
-        pass
-
-
-class Stage0DataModule(pl.LightningDataModule):
-    """Training views for :class:`Gaussians4DModule`.
-
-    The views (fitting cameras x training frames, see
-    :class:`toolkit.data.datamodule.MultiViewDataModule`) are loaded once and cached on the
-    training device by the module; the train dataloader only yields iteration numbers (the
-    module picks the frame of each iteration), so no image is copied to the device per step.
-
-    Args:
-        scene: A :class:`MultiViewScene`, a scene folder, or None when ``views`` is given.
-        cameras: Fitting cameras (``"sparse"``, ``"all"`` or 0-based indices).
-        n_train: Number of training frames (None: min(14, T)).
-        downscale: Image downscale factor.
-        composite_on_black: Multiply images by their masks (ground truth on black).
-        layout: Layout of a scene folder.
-        views: Ready-made :class:`TrainingViews` (benchmarks, tests) instead of a scene.
-    """
-
-    def __init__(
-        self,
-        scene: Any = None,
-        *,
-        cameras: Sequence[int] | str = "sparse",
-        n_train: Optional[int] = None,
-        downscale: float = 1.0,
-        composite_on_black: bool = True,
-        layout: str = "auto",
-        views: Optional[TrainingViews] = None,
-    ) -> None:
-        super().__init__()
-        if (scene is None) == (views is None):
-            raise ValueError("give exactly one of scene or views")
-        self.multiview = None
-        if scene is not None:
-            from toolkit.data.datamodule import MultiViewDataModule
-
-            self.multiview = MultiViewDataModule(
-                scene, cameras=cameras, n_train=n_train, downscale=downscale, shuffle=False, layout=layout
-            )
-        self.composite_on_black = composite_on_black
-        self._views = views
-
-    def training_views(self) -> TrainingViews:
-        """The training views on the CPU (loaded on first use)."""
-        if self._views is None:
-            self._views = TrainingViews.from_datamodule(self.multiview, self.composite_on_black)
-        return self._views
-
-    def train_dataloader(self) -> DataLoader:
-        return _StepLoader(_StepStream(self), batch_size=None, num_workers=0)
-
-
-# ====================================================================== training helpers
-
-
-@torch.no_grad()
-def screen_space_stats(
-    means: torch.Tensor, max_scale: torch.Tensor, cameras: Cameras
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-Gaussian visibility, 2D radius and the metres-to-NDC factor for a batch of cameras.
-
-    3DGS densifies on ``|dL/d mean2d|`` in NDC units, ``mean2d`` being the projected centre. The
-    renderers here are differentiated with respect to 3D means only; since a lateral move of
-    ``dx`` metres at depth ``z`` moves the projection by ``f dx / z`` pixels, i.e.
-    ``2 f dx / (z W)`` NDC units, ``|dL/d ndc| ≈ |dL/dx| z W / (2 f)``. With C cameras in one loss
-    the 3D gradient is the sum of the per-view ones; the factor is averaged over the cameras
-    that see the Gaussian.
-
-    Args:
-        means: (N, 3) rendered positions, metres.
-        max_scale: (N,) largest standard deviation, metres.
-        cameras: C cameras.
-
-    Returns:
-        ``(factor (N,), visible (N,) bool, radii (N,))``: metres-to-NDC gradient factor (mean
-        over the cameras that see each Gaussian), in view of at least one camera (projected 3-sigma
-        disc overlaps the image, centre in front of the near plane), largest 3-sigma radius in
-        pixels.
-    """
-    pc = cameras.world_to_camera(means)  # (C, N, 3)
-    z = pc[..., 2]
-    valid = z > cameras.near
-    zs = torch.where(valid, z, torch.ones_like(z))
-    K = cameras.K.to(means)
-    fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
-    u = fx * pc[..., 0] / zs + K[:, 0, 2, None]
-    v = fy * pc[..., 1] / zs + K[:, 1, 2, None]
-    r = 3.0 * max_scale[None] * torch.maximum(fx, fy) / zs
-    vis = valid & (u + r > 0) & (u - r < cameras.width) & (v + r > 0) & (v - r < cameras.height)
-    visf = vis.to(means.dtype)
-    factor_c = zs * cameras.width / (2.0 * fx)
-    factor = (factor_c * visf).sum(0) / visf.sum(0).clamp_min(1.0)
-    radii = (r * visf).amax(0)
-    return factor, vis.any(0), radii
-
-
-class _SSIM:
-    """:func:`toolkit.metrics.ssim_torch` (3DGS SSIM: 11 x 11 Gaussian window, sigma 1.5, zero
-    padding) with the window cached per device and dtype: building it on the CPU and copying it
-    to the GPU every call would synchronize the host with the device each iteration."""
-
-    def __init__(self, window_size: int = 11, sigma: float = 1.5):
-        self.window_size, self.sigma = window_size, sigma
-        self._cache: dict = {}
-
-    def __call__(self, img: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-        """img, gt: (B, H, W, C) in [0, 1] -> scalar mean SSIM (differentiable)."""
-        x, y = img.permute(0, 3, 1, 2), gt.to(img.dtype).permute(0, 3, 1, 2)
-        c = x.shape[1]
-        key = (x.device, x.dtype, c)
-        w = self._cache.get(key)
-        if w is None:
-            from toolkit.metrics.image import gaussian_window
-
-            w = gaussian_window(self.window_size, self.sigma, dtype=x.dtype, device=x.device)
-            w = self._cache[key] = w.expand(5 * c, 1, self.window_size, self.window_size).contiguous()
-        stats = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-        blurred = torch.nn.functional.conv2d(stats, w, padding=self.window_size // 2, groups=5 * c)
-        mu_x, mu_y, e_xx, e_yy, e_xy = blurred.split(c, dim=1)
-        mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
-        c1, c2 = 0.01**2, 0.03**2
-        ssim_map = ((2 * mu_xy + c1) * (2 * (e_xy - mu_xy) + c2)) / ((mu_xx + mu_yy + c1) * (e_xx - mu_xx + e_yy - mu_yy + c2))
-        return ssim_map.mean()
 
 
 # ====================================================================== the module
