@@ -3,7 +3,7 @@
 >>> from materials import get_material, MATERIALS
 >>> m = get_material("plasticine", yield_rule="pacnerf")
 >>> MATERIALS.names()
-['neo_hookean', 'neo_hookean_simplicits', 'newtonian', 'non_newtonian', 'plasticine', 'sand']
+['kelvin_voigt', 'neo_hookean', 'neo_hookean_simplicits', 'newtonian', 'non_newtonian', 'plasticine', 'sand']
 
 Third-party models register through the ``projo4d.materials`` entry-point group.
 """
@@ -25,6 +25,7 @@ MATERIALS: Registry[type[Material]] = Registry(
         "materials.non_newtonian",
         "materials.plasticine",
         "materials.sand",
+        "materials.kelvin_voigt",
     ),
 )
 register_material = MATERIALS.register

@@ -130,6 +130,46 @@ def test_discover_command_on_a_run_folder(runs, tmp_path):
 
 
 @pytest.mark.slow
+def test_internal_damping_is_exported_as_the_kelvin_voigt_material(runs):
+    """A discovered internal damping becomes the registered ``kelvin_voigt`` material over the base
+    one: the exported module, and the module built from the config by name (as ``projo4d fit
+    --config`` does), predict what the discovery library (its own augmented material) predicts."""
+    from toolkit.discovery.confirm import Refit
+    from toolkit.discovery.export import config_of, module_with_effect
+    from toolkit.mpm import SimConfig
+    from toolkit.physics import InversePhysicsModule
+
+    r = runs("ground_friction")
+    lib = r.result.final.lib
+    q = r.result.final.q.copy()
+    for n in lib.params_of("ground_friction"):
+        q[lib.index_of[n]] = 0.0
+    q[lib.index_of["internal_damping.eta"]] = 40.0
+    refit = Refit(name="internal_damping", q=q, start_objective=0.0, objective=0.0, lib=lib)
+    ours = lib.predict(q)["positions"]
+    new = module_with_effect(refit)
+    assert new.material.registry_name == "kelvin_voigt" and new.material.base.registry_name == "neo_hookean"
+    assert new.estimate()["params"]["damping"] == pytest.approx(40.0, rel=1e-5) and "damping" in new.optimized_material
+    assert torch.allclose(new.predict_trajectory()["positions"], ours, atol=1e-5)
+    # the damping matters here: without it the body moves otherwise
+    q0 = q.copy()
+    q0[lib.index_of["internal_damping.eta"]] = 0.0
+    assert float((lib.predict(q0)["positions"] - ours).abs().max()) > 1e-3
+    cfg = config_of(refit)
+    model = dict(cfg["model"])
+    assert model["material"] == "kelvin_voigt" and model["material_options"]["base"] == "neo_hookean"
+    model["sim"] = SimConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in model["sim"].items()})
+    replay = InversePhysicsModule(r.module.input, **model)
+    # the geometry is not carried by the config (it comes from the run): neither the base fit's
+    # particle offsets (this tiny scene's curriculum fits X) nor the refit's rigid shift (m); with
+    # both put back, the replay starts where the library's body starts
+    shift = torch.tensor(lib.physical(q)["shift"], dtype=torch.float32)
+    with torch.no_grad():
+        replay.particle_offset.copy_(r.module.particle_offset.detach().cpu() + shift)
+    assert torch.allclose(replay.predict_trajectory()["positions"], ours, atol=1e-5)
+
+
+@pytest.mark.slow
 def test_discovered_effect_as_a_module(runs):
     """The decision exported as an InversePhysicsModule with the effect predicts what the
     discovery's final refit predicts."""

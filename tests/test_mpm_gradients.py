@@ -25,6 +25,7 @@ CASES = {
     "non_newtonian": {"mu": 1e3, "kappa": 1e4, "yield_stress": 50.0, "plastic_viscosity": 1.0},
     "plasticine": {"E": 2e4, "nu": 0.3, "yield_stress": 300.0},
     "sand": {"friction_angle": 30.0, "E": 1e5, "nu": 0.3},
+    "kelvin_voigt": {"E": 2e4, "nu": 0.3, "damping": 30.0},
 }
 
 

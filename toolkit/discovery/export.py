@@ -9,9 +9,8 @@ strength, optimized in ``M`` like any other effect. It can be evaluated with
 
 Expressible candidates: the simulator effects (``ground_friction``, ``air_drag``,
 ``extra_acceleration``; ``wall`` only with the default normal +x, since the module takes effect
-*names*, not options), ``internal_damping`` (an
-:class:`~toolkit.discovery.materials.AugmentedMaterial` instance, not registered: such a
-module's checkpoint cannot be re-created by name) and ``plastic_yield`` (``plasticine``). The
+*names*, not options), ``internal_damping`` (the registered ``kelvin_voigt`` material wrapping
+the base one, :mod:`materials.kelvin_voigt`) and ``plastic_yield`` (``plasticine``). The
 others (``timing``, ``stiffness_gradient`` and the controls) change the trainer, not the model,
 and give ``None``.
 """
@@ -35,7 +34,6 @@ EXPRESSIBLE = ("ground_friction", "air_drag", "extra_acceleration", "wall", "int
 def module_with_effect(refit: Refit):
     """A new module with ``refit``'s candidate added at its refitted parameters (see the module
     docstring), or ``None`` for a candidate the module cannot express."""
-    from toolkit.discovery.materials import AugmentedMaterial
     from toolkit.physics import InversePhysicsModule
 
     lib, q, name = refit.lib, refit.q, refit.name
@@ -49,21 +47,25 @@ def module_with_effect(refit: Refit):
     params = dict(phys["params"])
     effects = {e: dict(v) for e, v in phys["effects"].items()}
     material = m.material
+    material_options = None  # the base material instance carries its own options
     optimize = list(m.optimized_material)
     if name in ("ground_friction", "air_drag", "extra_acceleration"):
         effects[name] = {k.split(".", 1)[1]: v for k, v in lib.describe(q, name).items()}
     elif name == "wall":
         effects["wall"] = {"strength": float(q[lib.index_of["wall.strength"]]), "offset": lib.wall_offset}
     elif name == "internal_damping":
-        material = AugmentedMaterial(m.material)
-        params = {**params, "damping": float(q[lib.index_of["internal_damping.eta"]])}
+        from materials.kelvin_voigt import NEGLIGIBLE_DAMPING
+
+        material = "kelvin_voigt"
+        material_options = {"base": m.material.registry_name, "base_options": dict(m.material.options)}
+        params = {**params, "damping": max(float(q[lib.index_of["internal_damping.eta"]]), NEGLIGIBLE_DAMPING)}
         optimize = optimize + ["damping"]
     elif name == "plastic_yield":
-        material = "plasticine"
+        material, material_options = "plasticine", None
         optimize = sorted(set(optimize) | {"yield_stress"}, key=["E", "nu", "yield_stress"].index)
     hp = dict(m.hparams)
     new = InversePhysicsModule(
-        m.input, material=material, material_options=hp.get("material_options") if isinstance(material, str) and name != "plastic_yield" else None,
+        m.input, material=material, material_options=material_options,
         initial_params=params, optimize_params=optimize, effects=effects, curriculum=hp.get("curriculum", "progressive"),
         renderer=m.renderer_name, sim=m.sim_config, v0_init=phys["v0"], material_init="given",  # continues the fit
         optimize_gravity=m.optimize_gravity,
@@ -100,7 +102,7 @@ def _wall_slot(lib) -> int:
 def config_of(refit: Refit, verdict: str = "") -> Optional[dict]:
     """The discovered model as a run config (the ``run:`` / ``model:`` / ``trainer:`` layout of
     :mod:`toolkit.run_config`), or ``None`` for a candidate a config cannot express
-    (:data:`EXPRESSIBLE` less ``internal_damping``, whose material is not registered by name).
+    (one not in :data:`EXPRESSIBLE`).
 
     ``model:`` carries the material, the refitted material parameters and initial velocity as
     starting values (``initial_params``, ``v0_init``), the discovered effect with its refitted
@@ -115,7 +117,7 @@ and loss weights;
     import dataclasses
 
     new = module_with_effect(refit)
-    if new is None or refit.name == "internal_damping":
+    if new is None:
         return None
     m = refit.lib.module
     est = new.estimate()
@@ -135,7 +137,7 @@ and loss weights;
              "sim": sim, "lambda_geometry": float(m.lambda_geometry), "optimize_gravity": bool(m.optimize_gravity),
              "effects": effects, "v0_init": [float(v) for v in new.v0.detach().cpu().tolist()],
              "ssim_weight": float(m.ssim_weight)}
-    if hp.get("material_options") and refit.name != "plastic_yield":
+    if hp.get("material_options"):
         model["material_options"] = dict(hp["material_options"])
     if hp.get("learning_rates"):
         model["learning_rates"] = dict(hp["learning_rates"])

@@ -86,21 +86,15 @@ class AugmentedMaterial(Material):
         return ("AugmentedMaterial", self.base.cache_key())
 
     def build_update(self):
-        base_update = self.base.warp_update()
-        k_eta = len(self.base.params)
-        k_s = k_eta + 1
-        volume_only = bool(self.base.tracks_volume_only)
+        from materials.kelvin_voigt import KelvinVoigt
+
+        damped = KelvinVoigt(self.base).warp_update()  # base stress + eta J (C + C^T), eta at the same column
+        k_s = len(self.base.params) + 1
 
         @wp.func
         def update(F_tmp: wp.mat33, C: wp.mat33, J: float, dt: float, p: wp.array2d(dtype=float), row: int):
-            F_new, J_new, tau = base_update(F_tmp, C, J, dt, p, row)
-            det = float(0.0)
-            if wp.static(volume_only):
-                det = wp.max(J_new, 1.0e-4)
-            else:
-                det = wp.max(wp.determinant(F_new), 1.0e-4)
-            tau_v = (p[row, k_eta] * det) * (C + wp.transpose(C))
-            return F_new, J_new, wp.exp(-p[row, k_s]) * (tau + tau_v)
+            F_new, J_new, tau = damped(F_tmp, C, J, dt, p, row)
+            return F_new, J_new, wp.exp(-p[row, k_s]) * tau
 
         return update
 
