@@ -46,10 +46,12 @@ of a 64-core machine took 15 minutes (base fit 6-11 minutes, discovery 1.7-4.8 m
 scene, next to a strategy comparison on its GPUs). With fewer cores, ``--time-budget`` stops
 starting scenes after that many seconds; rerun to continue.
 
-From images the physics renders stage 0's Gaussians (tens of thousands at full size, against
-about 400 for an oracle scene) at every iteration, so it is no longer launch-bound: on 64 cores
-with ``--device cpu`` no base fit of the full suite finished in 17 minutes (2026-11-27). Run
-``--geometry stage0`` at full size with ``--device cuda``.
+From images the physics renders stage 0's Gaussians at every iteration. Without a cap stage 0
+grew 27k-104k of them on these 96 px scenes and no base fit finished in 17 minutes on a core;
+the full stage-0 schedule now caps them at one per observed object pixel (3k-8.5k here), and
+``benchmarks/discovery_from_images.sh`` runs stage 0 on the GPUs and the physics on one core per
+scene: stage 0 took 209-238 s, the base fit 411-1063 s and discovery 108-518 s per scene
+(4 H200 GPUs and 64 cores, 2026-11-27).
 
 Reported in addition: top-1/top-3 on the scenes whose effect the data show (refitting the true
 effect halves the future gap); "no missing effect" is all the other scenes support.
