@@ -48,7 +48,7 @@ starting scenes after that many seconds; rerun to continue.
 
 From images the physics renders stage 0's Gaussians at every iteration. Without a cap stage 0
 grew 27k-104k of them on these 96 px scenes and no base fit finished in 17 minutes on a core;
-the full stage-0 schedule now caps them at one per observed object pixel (3k-8.5k here), and
+the full stage-0 schedule now caps them at one per observed object pixel (3.1k-8.5k in the scenes whose logs state it), and
 ``benchmarks/discovery_from_images.sh`` runs stage 0 on the GPUs and the physics on one core per
 scene: stage 0 took 209-238 s, the base fit 411-1063 s and discovery 108-518 s per scene
 (4 H200 GPUs and 64 cores, 2026-11-27).
@@ -63,6 +63,7 @@ import argparse
 import json
 import logging
 import math
+import re
 import sys
 import time
 from collections import Counter, defaultdict
@@ -352,6 +353,10 @@ def main(argv=None) -> int:
     p.add_argument("--time-budget", type=float, default=None,
                    help="seconds after which no new scene is started (rerun to continue: finished scenes are kept)")
     args = p.parse_args(argv)
+    for name in ("device", "stage0_device"):
+        value = getattr(args, name)
+        if value is not None and not re.fullmatch(r"cpu|cuda(:\d+)?", value):
+            p.error(f"--{name.replace('_', '-')} must be cpu, cuda or cuda:N; got {value!r}")
     if args.null is None:
         args.null = 12 if args.small else 20
     logging.basicConfig(level=logging.WARNING)

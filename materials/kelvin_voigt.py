@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from materials import get_material, register_material
-from materials.base import Material, MaterialParam
+from materials.base import Material, MaterialError, MaterialParam
 
 __all__ = ["KelvinVoigt", "DAMPING", "NEGLIGIBLE_DAMPING", "MIN_DAMPING_VOLUME_RATIO"]
 
@@ -51,18 +51,20 @@ class KelvinVoigt(Material):
 
     option_defaults = {"base": "neo_hookean", "base_options": {}}
 
-    def __init__(self, base: str | Material = "neo_hookean", base_options: Optional[Mapping[str, Any]] = None):
+    def __init__(self, base: str | Material = "neo_hookean", base_options: Optional[Mapping[str, Any]] = None, **unknown: Any):
+        if unknown:
+            super().__init__(**unknown)  # raises MaterialError naming the unknown options and the known ones
         if isinstance(base, Material):
             if base_options:
-                raise ValueError("kelvin_voigt: base_options can only be given with a base material name")
+                raise MaterialError("kelvin_voigt: base_options can only be given with a base material name")
             self.base: Material = base
             name, opts = base.name, dict(base.options)
         elif isinstance(base, str):
             self.base, name, opts = get_material(base, **dict(base_options or {})), base, dict(base_options or {})
         else:
-            raise TypeError(f"kelvin_voigt: base must be a registered material name, got {type(base).__name__}")
+            raise MaterialError(f"kelvin_voigt: base must be a registered material name, got {type(base).__name__}")
         if isinstance(self.base, KelvinVoigt):
-            raise ValueError("kelvin_voigt: base cannot be kelvin_voigt itself")
+            raise MaterialError("kelvin_voigt: base cannot be kelvin_voigt itself")
         super().__init__(base=name, base_options=opts)
         self.params = tuple(self.base.params) + (DAMPING,)  # instance-level: the base's, then damping
         self.uses_svd = self.base.uses_svd

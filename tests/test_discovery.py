@@ -294,3 +294,22 @@ def test_discover_command_names_bad_input(tmp_path):
     bad.write_text("{not json")
     assert f"--thresholds {bad}" in error(run, "--thresholds", bad)
     assert "--top-k must be >= 1" in error(run, "--top-k", "0")
+
+
+def test_discovery_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys):
+    """``benchmarks/discovery.py --stage0-device gpu`` stops with exit status 2 naming the option and
+    the value, and writes nothing."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "discovery.py"
+    spec = importlib.util.spec_from_file_location("discovery_benchmark", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "D"
+    for option in ("--device", "--stage0-device"):
+        with pytest.raises(SystemExit) as exc:
+            bench.main([option, "gpu", "--report-only", "--out", str(out)])
+        assert exc.value.code == 2
+        assert f"{option} must be cpu, cuda or cuda:N; got 'gpu'" in capsys.readouterr().err
+    assert not out.exists()

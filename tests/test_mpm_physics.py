@@ -223,6 +223,12 @@ def test_kelvin_voigt_adds_a_viscous_stress_that_damps_the_rebound(device):
         _, _, tau_spin = evaluate_update(kv, F, spin, J, kv.pack({**params, "damping": eta}), device)
         _, _, tau_spin_b = evaluate_update(get_material(base), F, spin, J, get_material(base).pack(params), device)
         np.testing.assert_allclose(tau_spin, tau_spin_b, atol=1e-4)
+    # bad options are refused naming the value and what is expected
+    from materials import MaterialError
+    for kw, msg in (({"base": "kelvin_voigt"}, "base cannot be kelvin_voigt"), ({"base": 3}, "base must be a registered material name"),
+                    ({"colour": "red"}, r"has no option\(s\) \['colour'\]")):
+        with pytest.raises(MaterialError, match=msg):
+            get_material("kelvin_voigt", **kw)
     # viscous time-step limit of the explicit stress: rho dx^2 / (6 eta)
     kv = get_material("kelvin_voigt")
     assert float(kv.viscous_dt({"damping": 50.0}, 1000.0, 0.03)) == pytest.approx(1000.0 * 0.03**2 / 300.0)

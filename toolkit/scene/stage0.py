@@ -240,16 +240,17 @@ class Gaussians4DModule(pl.LightningModule):
             lo, hi = mask_bounding_box(cams, masks0, resolution=hp.hull_resolution)
         else:
             raise ValueError("the scene has no masks: pass init_bbox=(min, max) to Gaussians4DModule")
+        cap = self.gaussian_cap(views)
         if hp.init == "hull":
             if masks0 is None:
                 raise ValueError("init='hull' needs masks; use init='box' with init_bbox for scenes without masks")
             n = int(hp.init_points or 2000)
-            cap = self.gaussian_cap(views)
             n = n if cap is None else max(1, min(n, cap))
             pts = visual_hull_points(cams, masks0, n, bbox=(lo, hi), resolution=hp.hull_resolution, seed=self.seed)
             colors = _colors_from_views(pts, cams, views.images[0].cpu(), masks0)
         else:
             n = int(hp.init_points or gic_num_points(lo.numpy(), hi.numpy()))
+            n = n if cap is None else max(1, min(n, cap))
             pts = random_box_points(lo, hi, n, seed=self.seed)
             colors = None
         self.gaussians.init_from_points(pts, colors, opacity=hp.init_opacity)
@@ -257,7 +258,7 @@ class Gaussians4DModule(pl.LightningModule):
         t = views.times.cpu()
         self.deformation.set_normalization(lo, hi, float(t.min()), float(t.max()))
         self._initialized = True
-        log.info("stage 0: %d initial Gaussians (%s init), at most %s, box %s..%s m", n, hp.init, self.gaussian_cap(views),
+        log.info("stage 0: %d initial Gaussians (%s init), at most %s, box %s..%s m", n, hp.init, cap,
                  lo.tolist(), hi.tolist())
 
     # ------------------------------------------------------------------ queries
