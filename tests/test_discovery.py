@@ -14,6 +14,7 @@ import json
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -89,6 +90,54 @@ def test_null_scene_has_no_missing_effect(runs):
     for name, v in res.validation.items():
         if name != "base" and not v["control"]:
             assert v["validation"] <= res.thresholds.validation
+
+
+@pytest.mark.slow
+def test_strength_profile_finds_a_hidden_friction_from_its_base_point(runs):
+    """The profile of a one-sided strength scores real rollouts. On the scene hiding ground
+    friction (mu = 0.6), a friction below 1.5 improves on the base and a far too strong one
+    (mu = 10) makes it worse. The best point sits below the truth, because the base parameters
+    are refitted only linearly. Each score is the drop of the projected objective."""
+    from toolkit.discovery.ranking import PROFILE_MULTIPLES, _perp, _projector, profile_strengths
+
+    lib = runs("ground_friction").result.lib
+    q0 = lib.q0.copy()
+    lib.assign(q0)
+    r0 = lib.residuals(q0)
+    Q = _projector(lib.jacobian(q0, lib.base_names, r0))
+    r_perp = _perp(Q, r0.numpy())
+    points, best = profile_strengths(lib, q0, Q, r_perp, ["ground_friction.mu"])
+    values = [p["value"] for p in points]
+    assert values == pytest.approx([min(0.05 * m, 10.0) for m in PROFILE_MULTIPLES])  # 15 clipped at the bound
+    drop, q_best, rj = best
+    mu = q_best[lib.index_of["ground_friction.mu"]]
+    assert mu <= 1.5 and drop > 0.0, points
+    by_value = {p["value"]: p["score"] for p in points}
+    assert by_value[10.0] < 0.0
+    assert by_value[mu] == pytest.approx(drop / (0.5 * float(r_perp @ r_perp)))
+    assert by_value[mu] == pytest.approx(1.0 - float(rj @ rj) / float(r_perp @ r_perp))
+
+
+@pytest.mark.slow
+def test_ranking_scores_a_clipped_one_sided_candidate_on_its_profile(runs, monkeypatch):
+    """When the linear prediction of every candidate is clipped to zero, the one-sided physics
+    candidates (friction, drag, damping) take their profile's score and strength, and the others
+    (two-sided strengths, controls) keep a zero score and no profile."""
+    from toolkit.discovery import ranking as rk
+
+    lib = runs("ground_friction").result.lib
+    monkeypatch.setattr(rk, "_bounded_lsq", lambda A, b, lo, hi: np.zeros(A.shape[1]))
+    result, _ = rk.rank_candidates(lib, search_wall=False)
+    by_name = {s.name: s for s in result.scores}
+    friction = by_name["ground_friction"]
+    assert friction.profile and friction.score > 0.0
+    best = max(friction.profile, key=lambda p: p["score"])
+    assert friction.score == pytest.approx(best["score"] * result.base_refit_objective / result.objective)
+    assert friction.predicted_strength["ground_friction.mu"] == pytest.approx(best["value"])
+    for name in ("air_drag", "internal_damping"):
+        assert by_name[name].profile, name
+    for name in ("extra_acceleration", "timing", "stiffness_gradient", "density", "camera_pose"):
+        assert by_name[name].profile is None and by_name[name].score == 0.0, name
 
 
 @pytest.mark.slow

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -36,17 +37,17 @@ def runs(tmp_path_factory):
     def get(effect: str) -> SimpleNamespace:
         if effect not in cache:
             hs = HiddenScene(effect, "none" if effect == "none" else "high")
-            # a camera-pose error is an observation error, applied after stage 0: the scene's images
-            # and its stage 0 are the null scene's (same throw, material and seed), so share them
+            # a camera-pose error is an error of the observation: the scene's images are the null
+            # scene's (same throw, material and seed), and stage 0 reads them with the wrong camera
             source = HiddenScene("none", "none") if effect == "camera_pose" else hs
             assert source.spec() == hs.spec()
             scene = source.generate(root / "scenes" / source.name)
             run = root / "runs" / hs.name
-            inp = stage0_physics_input(hs, scene, root / "images" / source.name)
+            inp = stage0_physics_input(hs, scene, root / "images" / hs.name)
             inp.save(run / "physics_input.pt")
             module = fit_base_from_images(inp, run / "physics", hs)
             result = discover(module, run / "discovery", **DISCOVER)
-            cache[effect] = SimpleNamespace(scene=hs, module=module, input=inp, result=result, run=run)
+            cache[effect] = SimpleNamespace(scene=hs, module=module, input=inp, result=result, run=run, scene_root=scene)
         return cache[effect]
 
     return get
@@ -88,6 +89,38 @@ def test_shifted_camera_is_an_observation_problem(runs):
     res = r.result
     assert res.decision == "camera_pose" and res.decision_kind == "observation", res.verdict
     assert "observation, not the physics" in res.verdict and "fitted camera" in res.verdict
+
+
+@pytest.mark.slow
+def test_stage0_sees_the_shifted_camera_and_the_shift_is_applied_once(runs, tmp_path):
+    """The camera-pose scene's stage 0 reads a scene whose perturbed fitted camera is moved by the
+    hidden shift and whose other cameras are the truth's. Its physics input carries the shift
+    once: the centre differs from the true one by exactly the shift, not twice it."""
+    from toolkit.data.datamodule import resolve_cameras
+    from toolkit.data.layout import load_scene
+    from toolkit.discovery.from_images import observed_scene
+    from toolkit.discovery.hidden import PERTURBED_CAMERA, HiddenScene
+
+    r = runs("camera_pose")
+    hs, root = r.scene, r.scene_root
+    shift = np.asarray(hs.truth_strengths_vector())
+    true_scene = load_scene(root)
+    seen = load_scene(observed_scene(hs, root, tmp_path / "observed"))
+    c = resolve_cameras(true_scene, "sparse")[PERTURBED_CAMERA]
+
+    def centres(cams):
+        w2c = cams.w2c.double()
+        return (-w2c[:, :3, :3].transpose(1, 2) @ w2c[:, :3, 3:]).squeeze(-1).numpy()
+
+    moved = centres(seen.cameras) - centres(true_scene.cameras)
+    assert np.allclose(moved[c], shift, atol=1e-6), (moved[c], shift)
+    assert np.allclose(np.delete(moved, c, axis=0), 0.0, atol=1e-7)
+    # the physics input was built from the observed scene, and observe() did not shift it again
+    inp_centres = centres(r.input.cameras)
+    assert np.allclose(inp_centres[c] - centres(true_scene.cameras)[c], shift, atol=1e-5)
+    # every other effect reads the generated scene itself
+    assert observed_scene(HiddenScene("none", "none"), root, tmp_path / "unused") == root
+    assert not (tmp_path / "unused").exists()
 
 
 @pytest.mark.slow

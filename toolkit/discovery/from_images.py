@@ -20,9 +20,13 @@ discovery on such a geometry trustworthy:
 :func:`stage0_physics_input` runs stage 0 and the continuum through the pipeline's own
 :func:`toolkit.pipeline.build_physics_input` (resumable: a finished ``physics_input.pt`` is
 reused, so every candidate of a scene shares one stage-0 run), then applies the hidden scene's
-observation errors (:meth:`~toolkit.discovery.hidden.HiddenScene.observe`). Note that those
-errors are applied to the physics input only: stage 0 itself saw the true cameras and the true
-frame times (a user's wrong camera would also bend stage 0's geometry; not simulated here).
+observation errors (:meth:`~toolkit.discovery.hidden.HiddenScene.observe`).
+
+A camera-pose error reaches stage 0 as a user's would (:func:`observed_scene`, since
+2026-11-27): the wrong camera is written into the scene that stage 0 reads, so stage 0 fits its
+geometry to it, and the physics input inherits it from there. Before, the error was applied to
+the physics input only, and stage 0 had seen the true camera. A timing error is still applied to
+the physics input only, because stage 0 orders frames by index and does not read their times.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-__all__ = ["STAGE0_CURRICULA", "STAGE0_SCHEDULES", "stage0_physics_input", "fit_base_from_images", "geometry_floor"]
+__all__ = ["STAGE0_CURRICULA", "STAGE0_SCHEDULES", "observed_scene", "stage0_physics_input", "fit_base_from_images", "geometry_floor"]
 
 #: base-fit curricula without the position group ``X``, per hidden-scene size (the oracle
 #: curricula of :data:`toolkit.discovery.hidden.SIZES` with ``X`` removed)
@@ -48,6 +52,60 @@ STAGE0_SCHEDULES: dict[str, Union[str, dict]] = {
     "tiny": {"preset": "tiny", "deform_lr_init": 8e-4, "deform_lr_final": 8e-5, "frame_curriculum": 300},
     "full": "full",
 }
+
+
+def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], cameras="sparse") -> Path:
+    """The scene as a user with the hidden scene's camera-pose error has it on disk.
+
+    For a ``camera_pose`` scene, ``out`` gets the scene's files as symbolic links, except
+    ``all_data.json``. That file is rewritten with the perturbed fitted camera's centre moved by
+    the hidden shift, in metres in the scene's world frame: ``c2w[:3, 3] += e``, the same change
+    :meth:`~toolkit.discovery.hidden.HiddenScene.observe` makes to a physics input. For every
+    other effect, ``scene_root`` itself is returned unchanged.
+
+    Args:
+        hs: the :class:`~toolkit.discovery.hidden.HiddenScene`.
+        scene_root: the generated scene (PAC-NeRF layout: ``all_data.json``, images named
+            ``r_<camera>_<frame>.png``).
+        out: folder for the observed scene; it is rewritten on every call.
+        cameras: the fitting cameras, as in :attr:`toolkit.pipeline.RunSettings.cameras`.
+
+    Returns:
+        The folder that stage 0 should read.
+    """
+    import json
+    import re
+    import shutil
+
+    from toolkit.data.datamodule import resolve_cameras
+    from toolkit.data.layout import load_scene
+    from toolkit.discovery.hidden import PERTURBED_CAMERA
+
+    root = Path(scene_root)
+    if hs.effect != "camera_pose":
+        return root
+    camera = resolve_cameras(load_scene(root), cameras)[PERTURBED_CAMERA]
+    shift = np.asarray(hs.truth_strengths_vector(), dtype=np.float64)
+    out = Path(out)
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for f in root.iterdir():
+        if f.name != "all_data.json":
+            (out / f.name).symlink_to(f.resolve())
+    entries = json.loads((root / "all_data.json").read_text())
+    moved = 0
+    for e in entries:
+        m = re.search(r"r_(\d+)_", Path(e["file_path"]).name)
+        if m and int(m.group(1)) == camera:
+            e["c2w"][0][3] += float(shift[0])
+            e["c2w"][1][3] += float(shift[1])
+            e["c2w"][2][3] += float(shift[2])
+            moved += 1
+    if not moved:
+        raise ValueError(f"{root / 'all_data.json'}: no image of camera {camera} (expected files named r_{camera}_<frame>.png)")
+    (out / "all_data.json").write_text(json.dumps(entries))
+    return out
 
 
 def stage0_physics_input(hs, scene_root: Union[str, Path], run_dir: Union[str, Path], stage0: Union[str, dict, None] = None,
@@ -80,10 +138,11 @@ def stage0_physics_input(hs, scene_root: Union[str, Path], run_dir: Union[str, P
     run.mkdir(parents=True, exist_ok=True)
     dx = float(SIZES[hs.size]["fit"]["dx"])
     stage0 = STAGE0_SCHEDULES[hs.size] if stage0 is None else stage0
-    settings = RunSettings(scene=str(scene_root), out=str(run), stage0=stage0, geometry="stage0", cameras=cameras,
+    scene = observed_scene(hs, scene_root, run / "observed_scene", cameras)
+    settings = RunSettings(scene=str(scene), out=str(run), stage0=stage0, geometry="stage0", cameras=cameras,
                            sim={"dx": dx}, device=device, seed=seed, renderer="auto")
     path = build_physics_input(settings, run, {})
-    return hs.observe(PhysicsInput.load(path))
+    return hs.observe(PhysicsInput.load(path), cameras_observed=scene != Path(scene_root))
 
 
 def fit_base_from_images(inp, out_dir: Union[str, Path], hs, accelerator: str = "cpu", curriculum: Optional[str] = None):

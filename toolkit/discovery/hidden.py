@@ -215,16 +215,18 @@ class HiddenScene:
         spacing = particle_spacing or SIZES[self.size]["fit"]["particle_spacing"]
         return self.observe(oracle_input(root, particle_spacing=spacing))
 
-    def observe(self, inp):
+    def observe(self, inp, cameras_observed: bool = False):
         """Apply the scene's observation errors (``timing``: the input claims 24 fps;
         ``camera_pose``: a fitted camera's centre is moved) to a physics input ``inp`` of its
         images (oracle or stage 0), and store the hidden truth in
-        ``ground_truth["hidden_effect"]``; returns ``inp`` (changed in place)."""
+        ``ground_truth["hidden_effect"]``; returns ``inp`` (changed in place).
+        ``cameras_observed``: the input was built from a scene whose cameras already carry the
+        error (:func:`toolkit.discovery.from_images.observed_scene`), so it is not applied again."""
         from toolkit.cameras import Cameras
 
         if self.effect == "timing":
             inp.times = torch.arange(inp.n_frames, dtype=torch.float32) / 24.0
-        if self.effect == "camera_pose":
+        if self.effect == "camera_pose" and not cameras_observed:
             cams = inp.cameras
             c = inp.train_cameras[PERTURBED_CAMERA]
             w2c = cams.w2c.clone()

@@ -28,6 +28,15 @@ stress on a grid of yield strains): each grid point is one rollout ``r_j``, scor
 ``0.5 (|P r_ref|^2 - |P r_j|^2)`` (same linearized base refit; ``r_ref`` the candidate at
 "absent").
 
+Strength profiles: a one-sided strength (friction, drag, damping: zero is absent and negative
+values are not allowed) whose linear prediction is clipped at zero scores zero, although the data
+may support a finite strength. The linearization at zero can point the wrong way once the base
+fit has partly absorbed the effect. Such a candidate is therefore also scored on a short profile:
+one rollout per strength at :data:`PROFILE_MULTIPLES` of its finite-difference step, up to its
+bound, each scored like a search point (``0.5 (|r_perp|^2 - |P r_j|^2)``). The best point sets the
+candidate's score and predicted strength, and ``profile`` records every point. The rigid-wall
+search scans :data:`WALL_STRENGTHS` in the same way.
+
 Confusability: for candidates ``a`` and ``b``, the share of ``a``'s predicted residual change
 ``J_perp[:, S_a] d_a`` that ``b``'s columns can reproduce (1 = indistinguishable from the data,
 0 = orthogonal). The most confusable partner of each candidate is reported.
@@ -45,7 +54,7 @@ import numpy as np
 from toolkit.discovery.candidates import WALL_NORMALS
 from toolkit.discovery.library import LibraryModel
 
-__all__ = ["CandidateScore", "Ranking", "rank_candidates", "YIELD_STRAINS"]
+__all__ = ["CandidateScore", "Ranking", "rank_candidates", "profile_strengths", "YIELD_STRAINS", "PROFILE_MULTIPLES", "WALL_STRENGTHS"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +62,11 @@ log = logging.getLogger(__name__)
 YIELD_STRAINS = (0.003, 0.01, 0.03, 0.1)
 #: wall offsets scanned beyond the observed extreme, in particle spacings.
 WALL_OFFSETS = (-0.5, 0.5, 1.5)
+#: wall strengths scanned at each normal and offset (1 = a rigid wall).
+WALL_STRENGTHS = (0.25, 0.5, 1.0)
+#: profile points of a one-sided strength whose linear score is zero, in multiples of its
+#: finite-difference step (about half a decade apart).
+PROFILE_MULTIPLES = (3.0, 10.0, 30.0, 100.0, 300.0)
 
 
 @dataclass
@@ -74,6 +88,8 @@ class CandidateScore:
         partner: the most confusable other candidate, and ``overlap`` its share of this
             candidate's predicted residual change (0..1).
         rank: 1-based position.
+        profile: for a candidate scored on a strength profile (see the module docstring), the
+            points ``[{"parameter", "value", "score"}]``; else ``None``.
     """
 
     name: str
@@ -87,6 +103,7 @@ class CandidateScore:
     partner: Optional[str] = None
     overlap: float = 0.0
     rank: int = 0
+    profile: Optional[list] = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -212,12 +229,22 @@ def rank_candidates(lib: LibraryModel, q0: Optional[np.ndarray] = None, plastic_
         drop = 0.5 * (float(r_perp @ r_perp) - float(res @ res))
         changes[c.name] = A @ d
         spans[c.name] = A
-        scores.append(CandidateScore(
+        sc = CandidateScore(
             name=c.name, control=c.control, dof=len(names), score=max(drop, 0.0) / max(L0, 1e-30),
             predicted_strength={n: float(q0[i] + d[k] * lib.steps[i]) for k, (n, i) in enumerate(zip(names, ii))},
             gradient={n: float(grad[lib.index_of[n]]) for n in names},
             projected_gradient={n: float(proj_grad[col[n]]) for n in names},
-        ))
+        )
+        if drop <= 0.0 and not c.control and np.all(lib.low[ii] == 0.0) and np.all(q0[ii] == 0.0):
+            points, best = profile_strengths(lib, q0, Q, r_perp, names)
+            sc.profile = points
+            if best is not None and best[0] > 0.0:
+                p_drop, q_best, rj = best
+                sc.score = p_drop / max(L0, 1e-30)
+                sc.predicted_strength = {n: float(q_best[i]) for n, i in zip(names, ii)}
+                changes[c.name] = rj - r_perp
+                spans[c.name] = changes[c.name][:, None]
+        scores.append(sc)
     # ------------------------------------------------------------------ searched candidates
     if search_wall and "wall" in lib.names_of:
         best = _wall_search(lib, q0, Q, r_perp, L0)
@@ -255,6 +282,45 @@ def rank_candidates(lib: LibraryModel, q0: Optional[np.ndarray] = None, plastic_
     return Ranking(scores, L0, L_base, overlaps, time.time() - t0), state
 
 
+def profile_strengths(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.ndarray, names: list[str]):
+    """Score one-sided strengths on a profile (see the module docstring).
+
+    For each parameter in ``names``, one rollout at each of :data:`PROFILE_MULTIPLES` times its
+    step (clipped at its upper bound; a repeated value is skipped), the other strengths at
+    ``q0``. Each point is scored as ``0.5 (|r_perp|^2 - |P r_j|^2)``: the drop of the
+    Gauss-Newton objective after the base parameters' linearized refit. ``Q`` is the orthonormal
+    basis of the base parameters' Jacobian and ``r_perp`` the base residual with that span removed.
+
+    Returns:
+        ``(points, best)``. ``points`` is ``[{"parameter", "value", "score"}]``, where ``score`` is
+        the drop relative to ``0.5 |r_perp|^2``. ``best`` is ``(drop, q, P r_j)`` of the largest
+        drop, or ``None`` when every rollout failed.
+    """
+    base_norm = float(r_perp @ r_perp)
+    points: list[dict] = []
+    best = None
+    for n in names:
+        i = lib.index_of[n]
+        tried: set[float] = set()
+        for m in PROFILE_MULTIPLES:
+            v = float(min(q0[i] + m * lib.steps[i], lib.high[i]))
+            if v in tried:
+                continue
+            tried.add(v)
+            q = q0.copy()
+            q[i] = v
+            try:
+                rj = _perp(Q, lib.residuals(q).numpy())
+            except Exception as exc:  # a failed rollout (CFL, NaN) is no evidence either way
+                log.info("profile of %s at %g failed: %s", n, v, exc)
+                continue
+            drop = 0.5 * (base_norm - float(rj @ rj))
+            points.append({"parameter": n, "value": v, "score": drop / max(0.5 * base_norm, 1e-30)})
+            if best is None or drop > best[0]:
+                best = (drop, q, rj)
+    return points, best
+
+
 def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.ndarray, L0: float):
     """Rigid walls just beyond the farthest the *observed* body (stage-0 surfaces) reached in each
     horizontal direction it moved; the best by predicted drop."""
@@ -275,24 +341,25 @@ def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.nd
         for f in WALL_OFFSETS:
             offset = m_min - f * spacing
             lib.set_wall(k, offset)
-            q = q0.copy()
-            q[i_s] = 1.0
-            try:
-                rj = _perp(Q, lib.residuals(q).numpy())
-            except Exception as exc:  # a failed rollout is no evidence either way
-                log.info("wall search at normal %s offset %.3f failed: %s", n, offset, exc)
-                continue
-            drop = 0.5 * (base_norm - float(rj @ rj))
-            if best is None or drop > best[0]:
-                best = (drop, k, offset, rj)
+            for strength in WALL_STRENGTHS:
+                q = q0.copy()
+                q[i_s] = strength
+                try:
+                    rj = _perp(Q, lib.residuals(q).numpy())
+                except Exception as exc:  # a failed rollout is no evidence either way
+                    log.info("wall search at normal %s offset %.3f strength %g failed: %s", n, offset, strength, exc)
+                    continue
+                drop = 0.5 * (base_norm - float(rj @ rj))
+                if best is None or drop > best[0]:
+                    best = (drop, k, offset, strength, rj)
     if best is None:
         return None
-    drop, k, offset, rj = best
+    drop, k, offset, strength, rj = best
     lib.set_wall(k, offset)
     change = rj - r_perp
     sc = CandidateScore(name="wall", control=False, dof=1, score=max(drop, 0.0) / max(L0, 1e-30),
-                        predicted_strength={"wall.strength": 1.0 if drop > 0 else 0.0},
-                        search={"normal": list(WALL_NORMALS[k]), "offset": offset, "index": k})
+                        predicted_strength={"wall.strength": strength if drop > 0 else 0.0},
+                        search={"normal": list(WALL_NORMALS[k]), "offset": offset, "index": k, "strength": strength})
     return sc, change, change[:, None], (k, offset)
 
 

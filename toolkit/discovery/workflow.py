@@ -408,7 +408,7 @@ def _refit_candidate(lib: LibraryModel, plib: Optional[LibraryModel], state: dic
         k, offset = state["wall"]
         lib.set_wall(k, offset)
         q = base.q.copy()
-        q[lib.index_of["wall.strength"]] = 1.0
+        q[lib.index_of["wall.strength"]] = (score.search or {}).get("strength", 1.0)
         rf = lm_refit(lib, q, lib.base_names + ["wall.strength"], name, iterations=iterations)
         rf.extra = dict(score.search or {})
         return rf
