@@ -109,8 +109,7 @@ def test_stage0_sees_the_shifted_camera_and_the_shift_is_applied_once(runs, tmp_
     c = resolve_cameras(true_scene, "sparse")[PERTURBED_CAMERA]
 
     def centres(cams):
-        w2c = cams.w2c.double()
-        return (-w2c[:, :3, :3].transpose(1, 2) @ w2c[:, :3, 3:]).squeeze(-1).numpy()
+        return cams.centers.double().numpy()
 
     moved = centres(seen.cameras) - centres(true_scene.cameras)
     assert np.allclose(moved[c], shift, atol=1e-6), (moved[c], shift)
@@ -121,6 +120,10 @@ def test_stage0_sees_the_shifted_camera_and_the_shift_is_applied_once(runs, tmp_
     # every other effect reads the generated scene itself
     assert observed_scene(HiddenScene("none", "none"), root, tmp_path / "unused") == root
     assert not (tmp_path / "unused").exists()
+    # a second call on the same folder (a resumed run) writes the same file
+    text = (tmp_path / "observed" / "all_data.json").read_text()
+    observed_scene(hs, root, tmp_path / "observed")
+    assert (tmp_path / "observed" / "all_data.json").read_text() == text
 
 
 @pytest.mark.slow

@@ -67,7 +67,8 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
         hs: the :class:`~toolkit.discovery.hidden.HiddenScene`.
         scene_root: the generated scene (PAC-NeRF layout: ``all_data.json``, images named
             ``r_<camera>_<frame>.png``).
-        out: folder for the observed scene; it is rewritten on every call.
+        out: folder for the observed scene; links already there are kept and
+            ``all_data.json`` is written atomically, so a call on a finished run changes nothing.
         cameras: the fitting cameras, as in :attr:`toolkit.pipeline.RunSettings.cameras`.
 
     Returns:
@@ -75,8 +76,8 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
     """
     import json
     import re
-    import shutil
 
+    from toolkit.atomic import write_json
     from toolkit.data.datamodule import resolve_cameras
     from toolkit.data.layout import load_scene
     from toolkit.discovery.hidden import PERTURBED_CAMERA
@@ -87,12 +88,11 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
     camera = resolve_cameras(load_scene(root), cameras)[PERTURBED_CAMERA]
     shift = np.asarray(hs.truth_strengths_vector(), dtype=np.float64)
     out = Path(out)
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
+    out.mkdir(parents=True, exist_ok=True)
     for f in root.iterdir():
-        if f.name != "all_data.json":
-            (out / f.name).symlink_to(f.resolve())
+        link = out / f.name
+        if f.name != "all_data.json" and not link.exists():
+            link.symlink_to(f.resolve())
     entries = json.loads((root / "all_data.json").read_text())
     moved = 0
     for e in entries:
@@ -104,7 +104,7 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
             moved += 1
     if not moved:
         raise ValueError(f"{root / 'all_data.json'}: no image of camera {camera} (expected files named r_{camera}_<frame>.png)")
-    (out / "all_data.json").write_text(json.dumps(entries))
+    write_json(out / "all_data.json", entries, indent=None)
     return out
 
 
