@@ -28,6 +28,17 @@ stress on a grid of yield strains): each grid point is one rollout ``r_j``, scor
 ``0.5 (|P r_ref|^2 - |P r_j|^2)`` (same linearized base refit; ``r_ref`` the candidate at
 "absent").
 
+A base fit without a wall explains a body that stops early by a slow throw (on a slide stopped by a
+wall, a horizontal v0 of 0.41 m/s for a true 1.5). Its trajectory then never reaches any wall
+placement, and no linearized refit can take v0 back: every wall point scores zero. The wall search
+therefore also rolls out each placement from a second start, the base point with its horizontal v0
+replaced by the observed body's horizontal velocity before its horizontal motion bends
+(:func:`horizontal_start`). A placement rolled out from that start is scored against the better of
+the base and the same start without a wall (``0.5 (min(|r_perp|^2, |P r_v|^2) - |P r_j|^2)``), so
+the wall is credited only with what it adds to the change of v0. The best placement over both
+starts wins, and ``search["start"]`` (``"base"`` or ``"observed_v0"``) and ``search["v0"]`` say
+which start, so that the confirmation refit begins there.
+
 Strength profiles: a one-sided strength (friction, drag, damping: zero is absent and negative
 values are not allowed) whose linear prediction is clipped at zero scores zero, although the data
 may support a finite strength. The linearization at zero can point the wrong way once the base
@@ -50,11 +61,12 @@ from dataclasses import asdict, dataclass, field
 from typing import Optional
 
 import numpy as np
+import torch
 
 from toolkit.discovery.candidates import WALL_NORMALS
 from toolkit.discovery.library import LibraryModel
 
-__all__ = ["CandidateScore", "Ranking", "rank_candidates", "profile_strengths", "YIELD_STRAINS", "PROFILE_MULTIPLES", "WALL_STRENGTHS"]
+__all__ = ["CandidateScore", "Ranking", "rank_candidates", "profile_strengths", "horizontal_start", "YIELD_STRAINS", "PROFILE_MULTIPLES", "WALL_STRENGTHS"]
 
 log = logging.getLogger(__name__)
 
@@ -333,6 +345,14 @@ def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.nd
     base_norm = float(r_perp @ r_perp)
     best = None
     i_s = lib.index_of["wall.strength"]
+    starts = [("base", q0, base_norm)]
+    q_h = horizontal_start(lib, q0)
+    if q_h is not None:
+        try:  # the wall is credited only with what it adds to the v0 change alone
+            rh = _perp(Q, lib.residuals(q_h).numpy())
+            starts.append(("observed_v0", q_h, min(base_norm, float(rh @ rh))))
+        except Exception as exc:  # a failed rollout: no second start
+            log.info("the wall search's observed-v0 start failed: %s", exc)
     for k, n in enumerate(WALL_NORMALS):
         proj = [o @ np.asarray(n) for o in obs]
         m0, m_min = float(proj[0].min()), float(min(p.min() for p in proj))
@@ -342,25 +362,62 @@ def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.nd
             offset = m_min - f * spacing
             lib.set_wall(k, offset)
             for strength in WALL_STRENGTHS:
-                q = q0.copy()
-                q[i_s] = strength
-                try:
-                    rj = _perp(Q, lib.residuals(q).numpy())
-                except Exception as exc:  # a failed rollout is no evidence either way
-                    log.info("wall search at normal %s offset %.3f strength %g failed: %s", n, offset, strength, exc)
-                    continue
-                drop = 0.5 * (base_norm - float(rj @ rj))
-                if best is None or drop > best[0]:
-                    best = (drop, k, offset, strength, rj)
+                for start, q_start, ref_norm in starts:
+                    q = q_start.copy()
+                    q[i_s] = strength
+                    try:
+                        rj = _perp(Q, lib.residuals(q).numpy())
+                    except Exception as exc:  # a failed rollout is no evidence either way
+                        log.info("wall search at normal %s offset %.3f strength %g (%s start) failed: %s",
+                                 n, offset, strength, start, exc)
+                        continue
+                    drop = 0.5 * (ref_norm - float(rj @ rj))
+                    if best is None or drop > best[0]:
+                        best = (drop, k, offset, strength, rj, start, q)
     if best is None:
         return None
-    drop, k, offset, strength, rj = best
+    drop, k, offset, strength, rj, start, q = best
     lib.set_wall(k, offset)
     change = rj - r_perp
+    v0 = [float(q[lib.index_of[f"v0.{a}"]]) for a in "xyz"]
     sc = CandidateScore(name="wall", control=False, dof=1, score=max(drop, 0.0) / max(L0, 1e-30),
                         predicted_strength={"wall.strength": strength if drop > 0 else 0.0},
-                        search={"normal": list(WALL_NORMALS[k]), "offset": offset, "index": k, "strength": strength})
+                        search={"normal": list(WALL_NORMALS[k]), "offset": offset, "index": k, "strength": strength,
+                                "start": start, "v0": v0})
     return sc, change, change[:, None], (k, offset)
+
+
+def horizontal_start(lib: LibraryModel, q0: np.ndarray, min_change: float = 0.02) -> Optional[np.ndarray]:
+    """``q0`` with its horizontal v0 (x, z; m/s) replaced by the velocity of the observed body
+    (stage-0 surfaces, training frames) before its horizontal motion bends, or ``None`` when there
+    is no estimate or it differs from ``q0``'s by less than ``min_change`` m/s.
+
+    Gravity and a frictionless ground do not act horizontally, so the centroid's x and z move on a
+    straight line until something pushes sideways (a wall, friction, wind). The estimate is
+    :func:`~toolkit.physics.initial_velocity.estimate_initial_velocity` on the surfaces with their
+    height removed, zero gravity and no ground: a linear fit over the frames before the first
+    that leaves the line by more than a grid cell (and stays off it). The vertical component is
+    kept: the searched walls are vertical planes."""
+    from toolkit.physics.initial_velocity import estimate_initial_velocity
+
+    inp = lib.input
+    flat = torch.tensor([1.0, 0.0, 1.0])
+    try:
+        est = estimate_initial_velocity([sf.detach().cpu().float() * flat for sf in inp.surfaces], inp.times,
+                                        gravity=(0.0, 0.0, 0.0), ground_height=None, dx=float(lib.sim.config.dx),
+                                        max_frames=int(inp.n_train))
+    except Exception as exc:  # no estimate is no reason to stop the search
+        log.info("no horizontal v0 estimate for the wall search: %s", exc)
+        return None
+    if est is None:
+        return None
+    q = np.asarray(q0, np.float64).copy()
+    for a, v in zip("xz", (est.v0[0], est.v0[2])):
+        q[lib.index_of[f"v0.{a}"]] = v
+    q = lib.clip(q)
+    if float(np.abs(q - q0).max()) < min_change:
+        return None
+    return q
 
 
 def _yield_search(plib: LibraryModel, Q: np.ndarray, L0: float):

@@ -409,6 +409,9 @@ def _refit_candidate(lib: LibraryModel, plib: Optional[LibraryModel], state: dic
         lib.set_wall(k, offset)
         q = base.q.copy()
         q[lib.index_of["wall.strength"]] = (score.search or {}).get("strength", 1.0)
+        if (score.search or {}).get("start") == "observed_v0":  # the placement scored from the observed v0
+            for a, v in zip("xyz", score.search["v0"]):
+                q[lib.index_of[f"v0.{a}"]] = v
         rf = lm_refit(lib, q, lib.base_names + ["wall.strength"], name, iterations=iterations)
         rf.extra = dict(score.search or {})
         return rf
