@@ -63,8 +63,8 @@ def ranking_rows(result) -> list[list[str]]:
         else:
             strength = ", ".join(f"{k.split('.', 1)[1]} {_fmt(val)}" for k, val in list(s.predicted_strength.items())[:3]) + " (pred.)"
         if s.search:
-            strength += " " + ", ".join(f"{k} {_fmt(val) if not isinstance(val, list) else val}" for k, val in s.search.items()
-                                        if k != "index")
+            strength += " " + ", ".join(f"{k} {_fmt_vec(val) if isinstance(val, list) else _fmt(val)}"
+                                        for k, val in s.search.items() if k != "index")
         grad = max(s.projected_gradient.values(), key=abs) if s.projected_gradient else None
         if s.name == result.decision:
             decision = "**discovered**" if result.decision_kind == "physics" else "**observation error**"
