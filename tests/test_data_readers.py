@@ -469,3 +469,14 @@ def test_batch_sampler_reshuffles_every_epoch():
     assert first != second
     sampler.set_epoch(0)
     assert list(sampler) == first
+
+
+def test_camera_and_frame_reads_the_pac_nerf_file_name():
+    """The reader's own file-name pattern: camera and frame of ``data/r_<camera>_<frame>[.png]``
+    (negative frames are the background plates), ``None`` for any other name."""
+    from toolkit.data.pac_nerf import camera_and_frame
+
+    assert camera_and_frame("./data/r_3_12.png") == (3, 12)
+    assert camera_and_frame("data/r_10_-1") == (10, -1)
+    assert camera_and_frame("data/r_3_12.jpg") is None
+    assert camera_and_frame("data/img_3_12.png") is None

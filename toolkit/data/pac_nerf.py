@@ -45,7 +45,7 @@ from toolkit.data.images import alpha_of, image_size, read_raw
 from toolkit.data.scene import GroundTruth, MultiViewScene
 from toolkit.data.world import World, check_frame_rate, into_canonical_world, load_world
 
-__all__ = ["PAC_NERF_WORLD", "read_pac_nerf"]
+__all__ = ["PAC_NERF_WORLD", "read_pac_nerf", "camera_and_frame"]
 
 _FILE = re.compile(r"^r_(\d+)_(-?\d+)(\.png)?$")
 _MATERIALS = {
@@ -62,6 +62,13 @@ PAC_NERF_WORLD = World(
     gravity=(0.0, -9.8, 0.0), ground_point=(0.0, 0.0, 0.0), ground_normal=(0.0, 1.0, 0.0), fps=None,
     source="PAC-NeRF (xuan-li/PAC-NeRF configs/default.py: gravity [0,-9.8,0], ground [[0,0,0],[0,1,0]])",
 )
+
+
+def camera_and_frame(file_path: str) -> tuple[int, int] | None:
+    """``(camera, frame)`` of an ``all_data.json`` ``file_path`` (``data/r_<camera>_<frame>[.png]``),
+    or ``None`` when its name does not follow that pattern."""
+    match = _FILE.match(PurePosixPath(str(file_path)).name)
+    return None if match is None else (int(match.group(1)), int(match.group(2)))
 
 
 def read_pac_nerf(root: str | Path, *, verify_sizes: bool = True) -> MultiViewScene:

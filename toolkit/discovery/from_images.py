@@ -75,11 +75,11 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
         The folder that stage 0 should read.
     """
     import json
-    import re
 
     from toolkit.atomic import write_json
     from toolkit.data.datamodule import resolve_cameras
     from toolkit.data.layout import load_scene
+    from toolkit.data.pac_nerf import camera_and_frame
     from toolkit.discovery.hidden import PERTURBED_CAMERA
 
     root = Path(scene_root)
@@ -96,8 +96,8 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
     entries = json.loads((root / "all_data.json").read_text())
     moved = 0
     for e in entries:
-        m = re.search(r"r_(\d+)_", Path(e["file_path"]).name)
-        if m and int(m.group(1)) == camera:
+        cf = camera_and_frame(e["file_path"])
+        if cf is not None and cf[0] == camera:
             e["c2w"][0][3] += float(shift[0])
             e["c2w"][1][3] += float(shift[1])
             e["c2w"][2][3] += float(shift[2])

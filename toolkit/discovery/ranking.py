@@ -167,6 +167,18 @@ def _perp(Q: np.ndarray, X: np.ndarray) -> np.ndarray:
     return X - Q @ (Q.T @ X)
 
 
+def _projected_drop(lib: LibraryModel, q: np.ndarray, Q: np.ndarray, ref_norm: float, what: str):
+    """One rollout at ``q`` scored as a search point: ``(0.5 (ref_norm - |P r_q|^2), P r_q)``, or
+    ``None`` when the rollout fails (CFL, NaN), which is no evidence either way (logged with
+    ``what``)."""
+    try:
+        rj = _perp(Q, lib.residuals(q).numpy())
+    except Exception as exc:
+        log.info("%s failed: %s", what, exc)
+        return None
+    return 0.5 * (ref_norm - float(rj @ rj)), rj
+
+
 def _bounded_lsq(A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """argmin_d |A d - b|^2 with lo <= d <= hi."""
     from scipy.optimize import lsq_linear
@@ -321,12 +333,10 @@ def profile_strengths(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: 
             tried.add(v)
             q = q0.copy()
             q[i] = v
-            try:
-                rj = _perp(Q, lib.residuals(q).numpy())
-            except Exception as exc:  # a failed rollout (CFL, NaN) is no evidence either way
-                log.info("profile of %s at %g failed: %s", n, v, exc)
+            scored = _projected_drop(lib, q, Q, base_norm, f"profile of {n} at {v:g}")
+            if scored is None:
                 continue
-            drop = 0.5 * (base_norm - float(rj @ rj))
+            drop, rj = scored
             points.append({"parameter": n, "value": v, "score": drop / max(0.5 * base_norm, 1e-30)})
             if best is None or drop > best[0]:
                 best = (drop, q, rj)
@@ -347,12 +357,10 @@ def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.nd
     i_s = lib.index_of["wall.strength"]
     starts = [("base", q0, base_norm)]
     q_h = horizontal_start(lib, q0)
-    if q_h is not None:
-        try:  # the wall is credited only with what it adds to the v0 change alone
-            rh = _perp(Q, lib.residuals(q_h).numpy())
-            starts.append(("observed_v0", q_h, min(base_norm, float(rh @ rh))))
-        except Exception as exc:  # a failed rollout: no second start
-            log.info("the wall search's observed-v0 start failed: %s", exc)
+    scored = None if q_h is None else _projected_drop(lib, q_h, Q, base_norm, "the wall search's observed-v0 start")
+    if scored is not None:  # the wall is credited only with what it adds to the v0 change alone
+        rh = scored[1]
+        starts.append(("observed_v0", q_h, min(base_norm, float(rh @ rh))))
     for k, n in enumerate(WALL_NORMALS):
         proj = [o @ np.asarray(n) for o in obs]
         m0, m_min = float(proj[0].min()), float(min(p.min() for p in proj))
@@ -365,13 +373,11 @@ def _wall_search(lib: LibraryModel, q0: np.ndarray, Q: np.ndarray, r_perp: np.nd
                 for start, q_start, ref_norm in starts:
                     q = q_start.copy()
                     q[i_s] = strength
-                    try:
-                        rj = _perp(Q, lib.residuals(q).numpy())
-                    except Exception as exc:  # a failed rollout is no evidence either way
-                        log.info("wall search at normal %s offset %.3f strength %g (%s start) failed: %s",
-                                 n, offset, strength, start, exc)
+                    scored = _projected_drop(lib, q, Q, ref_norm, f"wall search at normal {n} offset {offset:.3f} "
+                                                                  f"strength {strength:g} ({start} start)")
+                    if scored is None:
                         continue
-                    drop = 0.5 * (ref_norm - float(rj @ rj))
+                    drop, rj = scored
                     if best is None or drop > best[0]:
                         best = (drop, k, offset, strength, rj, start, q)
     if best is None:
@@ -432,12 +438,10 @@ def _yield_search(plib: LibraryModel, Q: np.ndarray, L0: float):
     best = None
     for strain in YIELD_STRAINS:
         q[i] = math.log10(strain * e)
-        try:
-            rj = _perp(Q, plib.residuals(q).numpy())
-        except Exception as exc:  # a failed rollout (CFL, NaN) is no evidence either way
-            log.info("yield search at strain %g failed: %s", strain, exc)
+        scored = _projected_drop(plib, q, Q, ref_norm, f"yield search at strain {strain:g}")
+        if scored is None:
             continue
-        drop = 0.5 * (ref_norm - float(rj @ rj))
+        drop, rj = scored
         if best is None or drop > best[0]:
             best = (drop, q[i], rj)
     if best is None:
