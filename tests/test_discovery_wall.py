@@ -91,7 +91,7 @@ def test_wall_refit_starts_from_the_searched_v0(wall_lib):
     """The confirmation refit of a wall found from the observed-v0 start begins at that v0: its
     start objective is the searched point's, below the slow base's objective with the wall."""
     from toolkit.discovery.confirm import Refit
-    from toolkit.discovery.workflow import _refit_candidate
+    from toolkit.discovery.refits import refit_candidate
 
     lib, hs = wall_lib
     q = lib.q0.copy()
@@ -99,7 +99,7 @@ def test_wall_refit_starts_from_the_searched_v0(wall_lib):
     (sc, _, _, where), *_ = _search(lib, q)
     base = Refit(name="base", q=q, start_objective=lib.objective(q), objective=lib.objective(q), iterations=0,
                  rollouts=0, lib=lib)
-    rf = _refit_candidate(lib, None, {"wall": where}, sc, base, iterations=0)
+    rf = refit_candidate(lib, None, {"wall": where}, sc, base, iterations=0)
     start = q.copy()
     start[lib.index_of["wall.strength"]] = sc.search["strength"]
     for a, v in zip("xyz", sc.search["v0"]):

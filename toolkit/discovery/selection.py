@@ -142,14 +142,16 @@ def camera_reported(cam: Optional[dict], thr) -> bool:
 
 
 def decide(validation: dict, dofs: dict[str, int], thr, noise: Optional[dict[str, dict[str, float]]] = None,
-           single_camera: Optional[int] = None) -> tuple[Optional[str], str, list[str]]:
+           single_camera: Optional[int] = None, prefer: Sequence[str] = ()) -> tuple[Optional[str], str, list[str]]:
     """``(decision, kind, tied)`` from the confirmation's validation statistics, the candidates'
     numbers of strength parameters and the thresholds.
 
     Among the candidates that pass (:func:`passes`), those whose penalized improvement is within
     ``max(threshold, 20 % of the best, 2 x criterion noise)`` of the best cannot be told apart
     (``noise[a][b]``: :func:`criterion_noise`, optional); of those the one with the fewest strength
-    parameters is chosen (parsimony), then the best. Without a passing candidate, the camera-pose
+    parameters is chosen (parsimony), then the best. ``prefer`` narrows that choice first: when
+    some tied candidates are in it (the kind of force the observed flight shows,
+    :func:`toolkit.discovery.kinematics.preferred_candidates`), the winner is one of them. Without a passing candidate, the camera-pose
     control is an observation problem when it improves the fit and the held-out data; otherwise
     ``(None, "none", [])`` (:func:`camera_reported`). When the base model's residual grows in one fitted camera alone
     (``single_camera``, :attr:`toolkit.discovery.residuals.Localization.single_camera`) and the
@@ -173,7 +175,8 @@ def decide(validation: dict, dofs: dict[str, int], thr, noise: Optional[dict[str
             return max(base_tol, 2.0 * se)
 
         tied = [n for n in passing if best - score[n] < tol(n) or n == best_name]
-        win = min(tied, key=lambda n: (dofs.get(n, 1), -score[n]))
+        pool = [n for n in tied if n in prefer] or tied
+        win = min(pool, key=lambda n: (dofs.get(n, 1), -score[n]))
         return win, "physics", sorted((n for n in tied if n != win), key=lambda n: -score[n])
     if cam_ok:
         return "camera_pose", "observation", []

@@ -43,8 +43,11 @@ from toolkit.discovery.calibration import DEFAULT_THRESHOLDS, Thresholds
 from toolkit.discovery.candidates import ELASTIC_MATERIALS, library
 from toolkit.discovery.confirm import Refit, lm_refit
 from toolkit.discovery.gap import evaluate_state, gap_shrink, ground_truth_clouds
+from toolkit.discovery.kinematics import observed_motion, preferred_candidates
 from toolkit.discovery.library import LibraryModel
 from toolkit.discovery.ranking import Ranking, rank_candidates
+from toolkit.discovery.refits import final_refit as _final_refit
+from toolkit.discovery.refits import refit_candidate as _refit_candidate
 from toolkit.discovery.residuals import Localization, localize
 from toolkit.discovery.selection import criterion_noise, decide, passes, penalized, relative_improvements, validation_components
 
@@ -87,6 +90,9 @@ class DiscoveryResult:
             test, and that parameter (:mod:`toolkit.discovery.joint`).
         noise: ``{a: {b: standard error}}`` of the difference of two refits' validation
             improvements (:func:`toolkit.discovery.selection.criterion_noise`).
+        motion: the observed centroid over the clip's first phase (a flight or a slide) and its
+            shape (:meth:`toolkit.discovery.kinematics.ObservedMotion.to_dict`), ``None``
+            without enough frames.
         lib, plastic_lib: the library models (not serialized).
     """
 
@@ -111,6 +117,7 @@ class DiscoveryResult:
     separation: list[dict] = field(default_factory=list)
     joint: dict[str, str] = field(default_factory=dict)
     noise: dict[str, dict[str, float]] = field(default_factory=dict)
+    motion: Optional[dict] = None
     lib: Optional[LibraryModel] = field(default=None, repr=False)
     plastic_lib: Optional[LibraryModel] = field(default=None, repr=False)
 
@@ -132,7 +139,7 @@ class DiscoveryResult:
             "gap": self.gap, "params": self.params, "thresholds": self.thresholds.to_dict(), "truth": self.truth,
             "identified": self.identified, "holdout_frames": self.holdout_frames, "seconds": self.seconds,
             "floors": self.floors, "separation": self.separation, "joint": self.joint,
-            "noise": self.noise,
+            "noise": self.noise, "motion": self.motion,
         }
         return _clean(d)
 
@@ -279,6 +286,7 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
         plib = LibraryModel(module, candidates, plastic=math.log10(e) - 2.0, geometry_weight=lib.geometry_weight)
         plib.fit_frames = fit_frames
     ranking, state = rank_candidates(lib, plastic_lib=plib)
+    motion = observed_motion(lib, lib.q0)
     seconds["rank"] = time.time() - t
     log.info("ranking: %s", ", ".join(f"{s.name} {s.score:.3g}" for s in ranking.scores))
 
@@ -296,7 +304,7 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     joint = absorbed_candidates(ranking, state, lib, undetermined, [s.name for s in chosen])
     chosen += [ranking.get(n) for n in joint]
     for s in chosen:
-        refits[s.name] = _refit_candidate(lib, plib, state, s, refits["base"], refit_iterations)
+        refits[s.name] = _refit_candidate(lib, plib, state, s, refits["base"], refit_iterations, motion=motion)
     if "camera_pose" in refits:  # narrowed to the one camera that carries the improvement
         from toolkit.discovery.camera import single_camera_refit
 
@@ -306,7 +314,8 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
 
     # ------------------------------------------------------------------ 4. decide
     decision, kind, indist = decide(validation, {sc.name: sc.dof for sc in ranking.scores}, thr, noise=noise,
-                                    single_camera=loc.single_camera if loc.single_camera in inp.train_cameras else None)
+                                    single_camera=loc.single_camera if loc.single_camera in inp.train_cameras else None,
+                                    prefer=preferred_candidates(motion, list(validation)))
     separation = []
     if kind == "physics":
         from toolkit.discovery.separation import separating_observation
@@ -331,7 +340,7 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
         try:
             seed_fit = refits.get(tc)
             if seed_fit is None:
-                seed_fit = _refit_candidate(lib, plib, state, ranking.get(tc), refits["base"], refit_iterations) \
+                seed_fit = _refit_candidate(lib, plib, state, ranking.get(tc), refits["base"], refit_iterations, motion) \
                     if tc in ranking.names else None
             if seed_fit is not None:
                 truth_refit = _final_refit(lib, plib, state, tc, seed_fit, final_iterations)
@@ -350,13 +359,13 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     params = {"before": lib.physical(lib.q0), "after": None if final is None else final.lib.physical(final.q)}
     if inp.ground_truth and inp.ground_truth.get("params"):
         params["truth"] = {"params": inp.ground_truth.get("params"), "v0": inp.ground_truth.get("v0")}
-    verdict = _verdict(decision, kind, indist, final, gap, validation, loc, separation, refits)
+    verdict = _verdict(decision, kind, indist, final, gap, validation, loc, separation, refits, motion)
     seconds["total"] = time.time() - t_start
     result = DiscoveryResult(verdict=verdict, decision=decision, decision_kind=kind, indistinguishable=indist, localization=loc,
                              ranking=ranking, refits=refits, validation=validation, final=final, truth_refit=truth_refit,
                              metrics=metrics, gap=gap, params=params, thresholds=thr, truth=truth, holdout_frames=val_frames,
                              seconds=seconds, lib=lib, plastic_lib=plib, floors=floors or {}, separation=separation,
-                             joint=joint, noise=noise)
+                             joint=joint, noise=noise, motion=None if motion is None else motion.to_dict())
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -373,65 +382,6 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
 
             write_report(result, out)
     return result
-
-
-def _start_point(lib: LibraryModel, base: Refit, score) -> np.ndarray:
-    """The base refit with the candidate's strengths at the ranking's prediction, scaled back
-    (1, 1/2, 1/4, 0) to the best objective: the linear prediction can overshoot."""
-    best_q, best_L = base.q.copy(), base.objective
-    for alpha in (1.0, 0.5, 0.25):
-        q = base.q.copy()
-        for n, v in score.predicted_strength.items():
-            if n in lib.index_of:
-                q[lib.index_of[n]] = alpha * v
-        q = lib.clip(q)
-        try:
-            L = lib.objective(q)
-        except Exception:  # a failing rollout: try a smaller step
-            continue
-        if L < best_L:
-            best_q, best_L = q, L
-    return best_q
-
-
-def _refit_candidate(lib: LibraryModel, plib: Optional[LibraryModel], state: dict, score, base: Refit, iterations: int) -> Refit:
-    """Confirmation refit of one candidate, from the base refit's parameters."""
-    name = score.name
-    if name == "plastic_yield":
-        q = plib.q0.copy()
-        q[plib.idx(plib.base_names)] = base.q[lib.idx(lib.base_names)]
-        q[plib.index_of["plastic_yield.log10_yield_stress"]] = state["yield"]
-        rf = lm_refit(plib, q, plib.base_names + ["plastic_yield.log10_yield_stress"], name, iterations=iterations)
-        rf.extra = {"yield_stress": float(10 ** rf.q[plib.index_of["plastic_yield.log10_yield_stress"]])}
-        return rf
-    if name == "wall":
-        k, offset = state["wall"]
-        lib.set_wall(k, offset)
-        q = base.q.copy()
-        q[lib.index_of["wall.strength"]] = (score.search or {}).get("strength", 1.0)
-        if (score.search or {}).get("start") == "observed_v0":  # the placement scored from the observed v0
-            for a, v in zip("xyz", score.search["v0"]):
-                q[lib.index_of[f"v0.{a}"]] = v
-        rf = lm_refit(lib, q, lib.base_names + ["wall.strength"], name, iterations=iterations)
-        rf.extra = dict(score.search or {})
-        return rf
-    lib.assign(base.q)
-    q = _start_point(lib, base, score)
-    return lm_refit(lib, q, lib.base_names + lib.params_of(name), name, iterations=iterations)
-
-
-def _final_refit(lib: LibraryModel, plib: Optional[LibraryModel], state: dict, name: str, seed: Refit, iterations: int) -> Refit:
-    """The candidate refitted on every training frame from its confirmation refit."""
-    target = seed.lib if seed.lib is not None else lib
-    if name == "wall":
-        k, offset = state["wall"]
-        target.set_wall(k, offset)
-    free = target.base_names + (target.params_of(name) if name != "plastic_yield" else ["plastic_yield.log10_yield_stress"])
-    rf = lm_refit(target, seed.q, free, name, iterations=iterations)
-    rf.extra = seed.extra
-    if name == "plastic_yield":
-        rf.extra = {"yield_stress": float(10 ** rf.q[target.index_of["plastic_yield.log10_yield_stress"]])}
-    return rf
 
 
 def _validate(lib: LibraryModel, refits: dict[str, Refit], val_frames: list[int], ranking: Ranking, thr: Thresholds,
@@ -478,7 +428,7 @@ def _gap(metrics: dict) -> dict:
     return out
 
 
-def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(), refits=None) -> str:
+def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(), refits=None, motion=None) -> str:
     if decision is None:
         return ("No missing effect: no candidate improves the held-out data beyond what the null-scene calibration allows"
                 + (f" ({loc.summary})." if loc.first_departure is not None else "."))
@@ -493,5 +443,12 @@ def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(),
     shrink = gap.get("cd_shrink")
     tail = f"; the future Chamfer gap shrinks by {100 * shrink:.0f} %" if shrink is not None else ""
     sep = "".join(f" To separate {d['candidates'][0]} from {d['candidates'][1]}: {d['sentence']}" for d in separation)
+    why = ""
+    if indist and motion is not None and decision in preferred_candidates(motion, [decision]):
+        bend = (f"smoothly, as a force acting in {'flight' if motion.phase == 'flight' else 'the slide'} does"
+                if motion.shape == "smooth" else "abruptly, as a wall does")
+        where = "flight before the first ground contact" if motion.phase == "flight" else "slide"
+        why = (f" Chosen among them because the observed {where} (frames {motion.frames[0]}-{motion.frames[-1]}) "
+               f"bends {bend}.")
     return (f"Missing effect: {decision} ({s}){extra}, improving the held-out data by "
-            f"{100 * validation[decision]['validation']:.0f} %{tail}.{sep}")
+            f"{100 * validation[decision]['validation']:.0f} %{tail}.{why}{sep}")

@@ -1,0 +1,231 @@
+"""What the observed body's first phase of motion says about a missing force.
+
+The clip's first phase is either a **flight** (the body starts off the ground; the phase ends
+at the base model's first ground contact) or a **slide** (the body starts on the ground; the
+phase lasts while it stays there). Gravity does not act sideways and the base model's ground is
+frictionless, so without a missing force the centroid of the observed (stage-0) surfaces moves
+on a straight horizontal line. A missing force leaves a signature in that line:
+
+* a **body force** (a constant extra acceleration, air drag) bends it *smoothly* (a parabola),
+  in a flight and on a slide alike; so does **ground friction** on a slide, while it cannot act
+  in a flight at all;
+* a **wall** bends it *abruptly*: two straight segments.
+
+:func:`observed_motion` fits the centroid over the phase's frames with three models of the
+horizontal (x, z) motion, a straight line, a parabola and two straight segments meeting at a
+frame, and compares them by their leave-one-frame-out prediction error (the same reason as
+:mod:`toolkit.discovery.selection`: cross-validation instead of an information criterion). A
+bent model is preferred only when it predicts the left-out frames at least :data:`BEND_FACTOR`
+times better than the line.
+
+Two uses in discovery (:mod:`toolkit.discovery.workflow`):
+
+* **a tie-break by kind** (:func:`preferred_candidates`): among candidates the validation data
+  cannot tell apart, a smooth bend prefers the forces that act smoothly in that phase (body
+  forces; on a slide also ground friction), an abrupt one the wall;
+* **a start for the extra acceleration's refit** (flights only): the parabola's acceleration
+  less gravity, and its initial velocity. A first-order prediction from a base fit that absorbed
+  the force (a slower throw) can point the wrong way; the observed flight does not depend on the
+  base fit.
+
+Units: metres, seconds; the world frame of the physics input (gravity along its ``gravity``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+__all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "fit_motion", "leading_phase",
+           "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start"]
+
+log = logging.getLogger(__name__)
+
+#: at least this many frames in the phase for a shape (a parabola left one frame out needs 3 more)
+MIN_PHASE_FRAMES = 5
+#: a bent model must predict left-out frames this many times better than the straight line
+BEND_FACTOR = 2.0
+#: candidates that act on the body everywhere, in flight too
+BODY_FORCES = ("extra_acceleration", "air_drag")
+
+
+@dataclass
+class ObservedMotion:
+    """The observed centroid over the clip's first phase (a flight or a slide).
+
+    Attributes:
+        frames: the phase's frames (indices into the physics input's frames).
+        acceleration: (3,) constant acceleration of the parabola fitted to the centroid, m/s^2.
+        extra: (3,) ``acceleration - gravity``: what gravity does not explain, m/s^2.
+        v0: (3,) the parabola's velocity at time 0 (the clip's first frame), m/s.
+        shape: ``"straight"``, ``"smooth"`` (a parabola) or ``"kink"`` (two segments), horizontal only.
+        loo: leave-one-frame-out root-mean-square error (m) of each horizontal model
+            (``line``, ``parabola``, ``segments``).
+        kink_frame: where the two segments meet (a frame index) when ``shape == "kink"``.
+        phase: ``"flight"`` (off the ground) or ``"slide"`` (on it).
+    """
+
+    frames: list[int]
+    acceleration: np.ndarray
+    extra: np.ndarray
+    v0: np.ndarray
+    shape: str
+    loo: dict[str, float] = field(default_factory=dict)
+    kink_frame: Optional[int] = None
+    phase: str = "flight"
+
+    def to_dict(self) -> dict:
+        return {"phase": self.phase, "frames": list(self.frames), "acceleration": [float(a) for a in self.acceleration],
+                "extra": [float(a) for a in self.extra], "v0": [float(v) for v in self.v0], "shape": self.shape,
+                "loo": {k: float(v) for k, v in self.loo.items()}, "kink_frame": self.kink_frame}
+
+
+def _design(t: np.ndarray, model: str, knot: Optional[float] = None) -> np.ndarray:
+    one = np.ones_like(t)
+    if model == "line":
+        return np.stack([one, t], 1)
+    if model == "parabola":
+        return np.stack([one, t, 0.5 * t * t], 1)
+    return np.stack([one, t, np.maximum(t - knot, 0.0)], 1)  # segments: a slope change at the knot
+
+
+def _fit(t: np.ndarray, y: np.ndarray, model: str) -> tuple[np.ndarray, Optional[float], float]:
+    """Least squares of ``y`` (T, D) on ``t`` (T,): ``(coefficients, knot, rss)``; for
+    ``segments`` the knot is the interior time that fits best."""
+    knots = [None] if model != "segments" else list(t[1:-1])
+    best = None
+    for knot in knots:
+        A = _design(t, model, knot)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        rss = float(((A @ coef - y) ** 2).sum())
+        if best is None or rss < best[2]:
+            best = (coef, knot, rss)
+    return best
+
+
+def loo_errors(t: np.ndarray, y: np.ndarray) -> dict[str, float]:
+    """Leave-one-frame-out RMS prediction error (units of ``y``) of the line, the parabola and two
+    segments fitted to ``y`` (T, D) against times ``t`` (T,). Each model is refitted without the
+    frame it predicts (segments choose their knot again each time)."""
+    out = {}
+    T = len(t)
+    for model in ("line", "parabola", "segments"):
+        err = []
+        for k in range(T):
+            keep = np.arange(T) != k
+            if model == "segments" and keep.sum() < 4:
+                continue
+            coef, knot, _ = _fit(t[keep], y[keep], model)
+            pred = _design(t[k:k + 1], model, knot) @ coef
+            err.append(float(((pred - y[k:k + 1]) ** 2).sum()))
+        out[model] = float(np.sqrt(np.mean(err) / y.shape[1])) if err else float("inf")
+    return out
+
+
+def fit_motion(centroids: np.ndarray, times: np.ndarray, gravity: Sequence[float],
+               frames: Optional[Sequence[int]] = None, bend_factor: float = BEND_FACTOR,
+               phase: str = "flight") -> Optional[ObservedMotion]:
+    """Classify and measure a phase from centroids ``(T, 3)`` (m) at ``times`` ``(T,)`` (s).
+
+    ``frames`` names the rows (default ``0..T-1``). ``None`` when there are fewer than
+    :data:`MIN_PHASE_FRAMES`. The shape compares the horizontal (x, z) models by
+    :func:`loo_errors`: the line unless the parabola or the segments predict at least
+    ``bend_factor`` times better; then whichever of the two predicts better.
+    """
+    c = np.asarray(centroids, np.float64)
+    t = np.asarray(times, np.float64)
+    if len(c) < MIN_PHASE_FRAMES:
+        return None
+    coef, _, _ = _fit(t, c, "parabola")
+    acc, v0 = coef[2], coef[1]
+    loo = loo_errors(t, c[:, [0, 2]])
+    bent = min(loo["parabola"], loo["segments"])
+    shape, kink = "straight", None
+    if bent * bend_factor <= loo["line"]:
+        shape = "smooth" if loo["parabola"] <= loo["segments"] else "kink"
+    if shape == "kink":
+        _, knot, _ = _fit(t, c[:, [0, 2]], "segments")
+        fr = list(frames) if frames is not None else list(range(len(c)))
+        kink = int(fr[int(np.argmin(np.abs(t - knot)))])
+    g = np.asarray(gravity, np.float64)
+    return ObservedMotion(frames=list(frames) if frames is not None else list(range(len(c))), acceleration=acc,
+                          extra=acc - g, v0=v0, shape=shape, loo=loo, kink_frame=kink, phase=phase)
+
+
+def leading_phase(lib, q: np.ndarray, frames: Sequence[int], contact_cells: float = 1.0,
+                  min_frames: int = MIN_PHASE_FRAMES) -> tuple[list[int], str]:
+    """The clip's first phase of at least ``min_frames`` frames among ``frames`` in the base
+    prediction ``q``: ``(frames, "flight")`` for a run of frames with the body farther than
+    ``contact_cells`` grid cells from the ground (every frame when there is no ground), or
+    ``(frames, "slide")`` for a run within that distance. A shorter first run (a slide's box
+    dropping 6 cm onto the ground) is skipped; ``([], "flight")`` when no run is long enough."""
+    ground = lib.sim.config.ground_height
+    if ground is None:
+        return list(frames), "flight"
+    _, pos = lib.trajectory(q, list(frames))
+    near = (pos[..., 1].amin(1).double().cpu().numpy() - ground) <= contact_cells * float(lib.sim.config.dx)
+    runs: list[tuple[list[int], bool]] = []
+    for f, on in zip(frames, near):
+        if runs and runs[-1][1] == bool(on):
+            runs[-1][0].append(int(f))
+        else:
+            runs.append(([int(f)], bool(on)))
+    for fr, on in runs:
+        if len(fr) >= min_frames:
+            return fr, "slide" if on else "flight"
+    return [], "flight"
+
+
+def observed_motion(lib, q: np.ndarray, frames: Optional[Sequence[int]] = None) -> Optional[ObservedMotion]:
+    """:func:`fit_motion` on the stage-0 surfaces' centroids over the first long enough phase of
+    the base prediction ``q`` (:func:`leading_phase`; among ``frames``, default the library's fit
+    frames). ``None`` without enough
+    frames in the phase or observed surfaces."""
+    inp = lib.input
+    frames = list(lib.fit_frames if frames is None else frames)
+    try:
+        fl, phase = leading_phase(lib, q, frames)
+    except Exception as exc:  # no estimate is no reason to stop discovery
+        log.info("no leading phase: %s", exc)
+        return None
+    fl = [f for f in fl if len(inp.surfaces[f])]
+    if len(fl) < MIN_PHASE_FRAMES:
+        return None
+    c = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in fl])
+    t = np.array([float(inp.times[f]) for f in fl]) - float(inp.times[0])
+    m = lib.module
+    if getattr(m, "optimize_gravity", False):
+        g = [float(q[lib.index_of[f"gravity.{a}"]]) for a in "xyz"]
+    else:
+        g = m.gravity.detach().double().cpu().numpy().tolist()
+    return fit_motion(c, t, g, frames=fl, phase=phase)
+
+
+def acceleration_start(lib, q: np.ndarray, flight: Optional[ObservedMotion]) -> Optional[np.ndarray]:
+    """``q`` with the extra acceleration at the flight's unexplained acceleration
+    (:attr:`ObservedMotion.extra`) and v0 at the flight's, clipped to the library's bounds;
+    ``None`` unless a flight bends smoothly, or without an extra-acceleration candidate."""
+    if (flight is None or flight.phase != "flight" or flight.shape != "smooth"
+            or "extra_acceleration.ax" not in lib.index_of):
+        return None
+    q = np.asarray(q, np.float64).copy()
+    for a, v in zip(("ax", "ay", "az"), flight.extra):
+        q[lib.index_of[f"extra_acceleration.{a}"]] = v
+    for a, v in zip("xyz", flight.v0):
+        q[lib.index_of[f"v0.{a}"]] = v
+    return lib.clip(q)
+
+
+def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str]) -> list[str]:
+    """Of ``names``, those the phase's shape supports: after a smooth bend the body forces (and
+    ground friction on a slide), after a kink the wall; none when the track is straight or there
+    is no phase to judge."""
+    if motion is None or motion.shape == "straight":
+        return []
+    if motion.shape == "smooth":
+        smooth = BODY_FORCES + (("ground_friction",) if motion.phase == "slide" else ())
+        return [n for n in names if n in smooth]
+    return [n for n in names if n == "wall"]
