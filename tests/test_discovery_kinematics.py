@@ -68,6 +68,16 @@ def test_a_wall_in_flight_is_a_kink_at_its_frame():
     assert preferred_candidates(fl, ["wall", "extra_acceleration", "ground_friction"]) == ["wall"]
 
 
+def test_the_report_sentence_states_the_shape_and_the_numbers():
+    from toolkit.discovery.kinematics import motion_sentence
+
+    c, t = _track(7, (1.5, 0.4, -0.45), (0.0, 0.0, 0.0), wall_frame=4)
+    fl = fit_motion(c, t, G)
+    text = motion_sentence(fl.to_dict())
+    assert "flight (frames 0-6" in text and f"kink at frame {fl.kink_frame}" in text
+    assert f"line {1e3 * fl.loo['line']:.2f} mm" in text
+
+
 def test_too_few_frames_give_no_flight():
     c, t = _track(4, (1.0, 0.4, -0.45), (-4.0, 0.0, 2.0))
     assert fit_motion(c, t, G) is None

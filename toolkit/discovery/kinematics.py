@@ -40,7 +40,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "fit_motion", "leading_phase",
-           "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start"]
+           "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start", "motion_sentence"]
 
 log = logging.getLogger(__name__)
 
@@ -229,3 +229,14 @@ def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str])
         smooth = BODY_FORCES + (("ground_friction",) if motion.phase == "slide" else ())
         return [n for n in names if n in smooth]
     return [n for n in names if n == "wall"]
+
+
+def motion_sentence(motion: dict) -> str:
+    """One sentence for the report from :meth:`ObservedMotion.to_dict`."""
+    a = ", ".join(f"{v:+.2f}" for v in motion["extra"])
+    loo = motion["loo"]
+    kink = f" at frame {motion['kink_frame']}" if motion.get("kink_frame") is not None else ""
+    return (f"Observed {motion['phase']} (frames {motion['frames'][0]}-{motion['frames'][-1]}, stage-0 centroid): "
+            f"horizontal track {motion['shape']}{kink}; leave-one-frame-out error: line {1e3 * loo['line']:.2f} mm, "
+            f"parabola {1e3 * loo['parabola']:.2f} mm, two segments {1e3 * loo['segments']:.2f} mm; acceleration "
+            f"not explained by gravity ({a}) m/s^2.")

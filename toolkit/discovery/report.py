@@ -187,6 +187,10 @@ def _blocks(result, figures: dict[str, str]) -> list[tuple[str, Any]]:
     if getattr(result, "joint", None):
         b.append(("p", "Confirmed because a base parameter the clip does not determine absorbed the score test (refitted "
                        "jointly): " + ", ".join(f"{c} with {u}" for c, u in result.joint.items()) + "."))
+    if getattr(result, "motion", None):
+        from toolkit.discovery.kinematics import motion_sentence
+
+        b.append(("p", motion_sentence(result.motion)))
     if getattr(result, "floors", None):
         b.append(("p", "Stage-0 geometric uncertainty carried as a floor under the held-out losses (the base model's loss at "
                        "frame 0): " + ", ".join(f"{k} {v:.3g}" for k, v in result.floors.items()) + "."))
