@@ -291,6 +291,33 @@ def test_local_executor_time_limit_stops_jobs_gracefully(tmp_path):
     assert any(e["event"] == "stopping" for e in events)
 
 
+def test_start_limit_stops_starting_jobs_but_lets_running_ones_finish(tmp_path):
+    """One worker; jobs of 0.2, 3 and 3 s; no job starts after 1 s. The second job starts at about
+    0.2 s and finishes its 3 s (a hard time limit would have stopped it); the third never starts
+    and stays to be run again, and nothing is interrupted."""
+    from toolkit.benchmark.runner import LocalExecutor, run_jobs
+
+    events = []
+    jobs = [{"id": f"j{i}", "kind": "fit", "folder": str(tmp_path / f"j{i}"), "fingerprint": "x", "seconds": s, "depends": []}
+            for i, s in enumerate([0.2, 3.0, 3.0])]
+    ex = LocalExecutor(1, fn="tests.bench_helpers:sleepy_job")
+    try:
+        t = time.time()
+        counts = run_jobs(jobs, ex, lambda e, **f: events.append({"event": e, **f}), heartbeat=100, min_start_s=0,
+                          start_deadline=time.time() + 1.0)
+        took = time.time() - t
+    finally:
+        ex.shutdown()
+    assert counts["done"] == 2 and counts["remaining"] == 1
+    done = {e["job"]: e for e in events if e["event"] == "done"}
+    assert set(done) == {"j0", "j1"} and done["j1"]["wall_s"] >= 2.9
+    assert not [e for e in events if e["event"] == "interrupted"]
+    assert [e["job"] for e in events if e["event"] == "start"] == ["j0", "j1"]
+    limit = [e for e in events if e["event"] == "start_limit"]
+    assert len(limit) == 1 and limit[0]["running"] == ["j1"] and limit[0]["not_started"] == 1
+    assert 3.0 <= took < 8.0
+
+
 def test_local_executor_gives_each_job_the_least_busy_gpu(tmp_path):
     from toolkit.benchmark.runner import LocalExecutor, run_jobs
 

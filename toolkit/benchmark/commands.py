@@ -149,6 +149,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     slurm.add_argument("--slurm-cluster", choices=["slurm", "local"], default="slurm",
                        help="'local' runs the jobs as local processes through submitit (a dry run without SLURM)")
     run.add_argument("--time-limit", type=float, metavar="SECONDS", help="return within this many seconds (jobs resume later)")
+    run.add_argument("--start-limit", type=float, metavar="SECONDS",
+                     help="start no job after this many seconds; running jobs go on until they finish or --time-limit")
     run.add_argument("--grace", type=float, default=45.0, help="seconds between asking jobs to stop and the limit")
     run.add_argument("--retry-failed", action="store_true", help="run failed jobs again")
     run.add_argument("--redo-changed", action="store_true", help="delete and redo results made with other settings")
@@ -261,7 +263,8 @@ def run(args: argparse.Namespace) -> int:
                                time_limit=args.time_limit, grace=args.grace, retry_failed=args.retry_failed,
                                redo_changed=args.redo_changed, dry_run=args.dry_run,
                                export=str(args.export) if args.export else None, figures=not args.no_figures,
-                               heartbeat=args.heartbeat, estimate_for=args.estimate_for, slurm=_slurm_args(args))
+                               heartbeat=args.heartbeat, estimate_for=args.estimate_for, slurm=_slurm_args(args),
+                               start_limit=args.start_limit)
     except BenchmarkError as err:
         raise SystemExit(f"projo4d benchmark: {err}") from None
     return 0 if result["complete"] or args.dry_run else 3

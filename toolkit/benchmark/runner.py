@@ -165,7 +165,8 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
                   retry_failed: bool = False, redo_changed: bool = False, dry_run: bool = False, export: Optional[str] = None,
                   figures: bool = True, echo: Optional[Callable[[dict], None]] = None, heartbeat: float = 60.0,
                   interrupt_at_step: Optional[int] = None, job_function: str = JOB_FUNCTION,
-                  estimate_for: Optional[str] = None, slurm: Optional[dict] = None) -> dict:
+                  estimate_for: Optional[str] = None, slurm: Optional[dict] = None,
+                  start_limit: Optional[float] = None) -> dict:
     """Plan, run (in parallel, resumable) and tabulate a benchmark.
 
     Args:
@@ -181,6 +182,9 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         time_limit: seconds from now by which this call returns (jobs get SIGTERM ``grace`` seconds
             before); a rerun continues.
         grace: see ``time_limit``.
+        start_limit: seconds from now after which no job starts; the running ones go on until
+            they finish or ``time_limit`` (e.g. a lent machine: ``time_limit`` its time left,
+            ``start_limit`` that less the length of a fit).
         retry_failed: run failed jobs again.
         redo_changed: delete and redo job folders made with other settings (else an error).
         dry_run: plan and print the estimates only.
@@ -210,10 +214,13 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         simulate_schedule,
     )
     from toolkit.benchmark.jobs import job_is_done, read_marker
-    from toolkit.benchmark.plan import plan_benchmark
+    from toolkit.benchmark.plan import BenchmarkError, plan_benchmark
 
     t_start = time.time()
     deadline = t_start + time_limit if time_limit else None
+    if start_limit is not None and start_limit < 0:
+        raise BenchmarkError(f"--start-limit must be at least 0 seconds, got {start_limit:g}")
+    start_deadline = t_start + start_limit if start_limit is not None else None
     bench = Path(out).resolve()
     if not dry_run:
         bench.mkdir(parents=True, exist_ok=True)
@@ -285,7 +292,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     per_chunk = (time_limit - grace) if time_limit else None
     emit("plan", out=str(bench), jobs=len(jobs), to_run=len(todo), scenes=len(spec.scenes),
          strategies=[s.label for s in spec.strategies], cameras=spec.cameras, executor=executor, workers=n_workers,
-         gpus=list(gpus) if gpus else None, profile=profile.name, time_limit_s=time_limit,
+         gpus=list(gpus) if gpus else None, profile=profile.name, time_limit_s=time_limit, start_limit_s=start_limit,
          estimated_worker_s=round(total_est, 0), estimated_wall_s=round(wall, 0),
          estimated_chunks=None if not per_chunk else max(1, math.ceil(wall / max(1.0, per_chunk))),
          **({"estimated_wall_s_if_all_refined": round(refined_wall, 0), "refinable_fits": len(refinable)}
@@ -318,7 +325,8 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
         previous = _stop_on_sigterm()
         try:
             counts = run_jobs(jobs, ex, emit, deadline=deadline, grace=grace, retry_failed=retry_failed, heartbeat=heartbeat,
-                              estimate=estimate, on_done=on_done, min_start_s=min(30.0, 0.1 * (time_limit or 0)))
+                              estimate=estimate, on_done=on_done, min_start_s=min(30.0, 0.1 * (time_limit or 0)),
+                              start_deadline=start_deadline)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the jobs saved their state; tabulate what is done
             finished = sum(1 for j in jobs if job_is_done(j))
             counts = {"done": finished, "failed": 0, "blocked": 0, "remaining": len(jobs) - finished, "ran": None,

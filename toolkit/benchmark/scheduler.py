@@ -76,7 +76,8 @@ def _skip_unneeded(jobs: Sequence[dict], state: dict[str, str], emit: Callable[.
 def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadline: Optional[float] = None,
              grace: float = 45.0, retry_failed: bool = False, heartbeat: float = 60.0,
              estimate: Optional[Callable[[dict], tuple[float, str]]] = None,
-             on_done: Optional[Callable[[dict, dict], None]] = None, min_start_s: float = 30.0) -> dict:
+             on_done: Optional[Callable[[dict, dict], None]] = None, min_start_s: float = 30.0,
+             start_deadline: Optional[float] = None) -> dict:
     """Run ``jobs`` (dicts of :class:`~toolkit.benchmark.plan.Job`) respecting their dependencies.
 
     Args:
@@ -90,6 +91,9 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
         estimate: job -> (seconds, basis), printed when a job starts.
         on_done: called with (job, result) when a job finishes.
         min_start_s: no job starts later than this many seconds before ``deadline - grace``.
+        start_deadline: ``time.time()`` after which no job starts; the running ones go on until
+            they finish (or until ``deadline``). For a lent machine whose time is counted: stop
+            starting fits that cannot finish without stopping the ones that can.
 
     Returns:
         Counts: ``done``, ``failed``, ``blocked``, ``remaining`` and ``ran`` (finished in this call).
@@ -143,6 +147,11 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
                 emit("blocked", job=j["id"], by=[d for d in j["depends"] if state.get(d) in ("failed", "blocked")])
         if deadline is not None and time.time() >= deadline - grace - min_start_s:
             stopping = True  # too close to the limit to start anything
+        if start_deadline is not None and not stopping and time.time() >= start_deadline:
+            stopping = True
+            emit("start_limit", running=[j["id"] for j in in_flight.values()],
+                 not_started=sum(1 for v in state.values() if v == "pending"),
+                 note="no job starts from now on; the running ones finish")
         ready = [j for j in jobs if state[j["id"]] == "pending" and all(state.get(d) == "done" for d in j.get("depends", []))]
         ready.sort(key=lambda j: (_KIND_RANK.get(j["kind"], 9), rank[j["id"]]))
         while ready and len(in_flight) < executor.capacity and not stopping:
@@ -157,6 +166,8 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
         timeout = heartbeat
         if deadline is not None:
             timeout = max(0.0, min(timeout, deadline - grace - time.time()))
+        if start_deadline is not None and not stopping:  # wake up to say that nothing starts any more
+            timeout = max(0.0, min(timeout, start_deadline - time.time()))
         try:
             for h in executor.wait(list(in_flight), timeout):
                 finish(h)
