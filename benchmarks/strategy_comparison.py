@@ -76,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="sequential's appearance stage (GIC: 40000); colours only, CD/EMD/parameters do not depend on it")
     p.add_argument("--stage0-iterations", type=int, help="GIC's stage-0 schedule scaled to N iterations (default: 40000)")
     p.add_argument("--time-limit", type=float, default=540.0, help="seconds per chunk (default 540)")
+    p.add_argument("--start-limit", type=float, help="seconds after which no job starts; running ones finish (or --time-limit)")
     p.add_argument("--jobs-per-gpu", type=int, default=2)
     p.add_argument("--gpus", help="GPU ids or a count (default: all)")
     p.add_argument("--export", default=os.environ.get("OUT"), help="copy tables and light results here (default $OUT)")
@@ -90,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
            str(args.time_limit), "--jobs-per-gpu", str(args.jobs_per_gpu)]
     if args.stage0_iterations:
         cmd += ["--stage0-iterations", str(args.stage0_iterations)]
+    if args.start_limit is not None:
+        cmd += ["--start-limit", str(args.start_limit)]
     if args.gpus:
         cmd += ["--gpus", args.gpus]
     if args.export:
