@@ -137,7 +137,7 @@ def run_scene(hs, args, thresholds) -> dict:
         "scene": hs.name, "geometry": args.geometry, "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
         "expected": hs.expected, "decision": res.decision, "kind": res.decision_kind, "indistinguishable": res.indistinguishable,
         "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence")} for d in res.separation],
-        "joint": res.joint, "floors": res.floors, "noise": res.noise, "motion": getattr(res, "motion", None),
+        "joint": res.joint, "floors": res.floors, "noise": res.noise, "motion": res.motion,
         "single_camera": res.localization.single_camera if res.localization.single_camera in inp.train_cameras else None,
         "correct": res.decision == hs.expected, "top3": order[:3], "cd_before": res.gap.get("cd_future_before"),
         "cd_after": res.gap.get("cd_future_after"), "cd_truth_effect": res.gap.get("cd_future_truth_effect"),

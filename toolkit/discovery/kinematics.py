@@ -146,13 +146,12 @@ def fit_motion(centroids: np.ndarray, times: np.ndarray, gravity: Sequence[float
     shape, kink = "straight", None
     if bent * bend_factor <= loo["line"]:
         shape = "smooth" if loo["parabola"] <= loo["segments"] else "kink"
+    frames = list(frames) if frames is not None else list(range(len(c)))
     if shape == "kink":
         _, knot, _ = _fit(t, c[:, [0, 2]], "segments")
-        fr = list(frames) if frames is not None else list(range(len(c)))
-        kink = int(fr[int(np.argmin(np.abs(t - knot)))])
-    g = np.asarray(gravity, np.float64)
-    return ObservedMotion(frames=list(frames) if frames is not None else list(range(len(c))), acceleration=acc,
-                          extra=acc - g, v0=v0, shape=shape, loo=loo, kink_frame=kink, phase=phase)
+        kink = int(frames[int(np.argmin(np.abs(t - knot)))])
+    return ObservedMotion(frames=frames, acceleration=acc, extra=acc - np.asarray(gravity, np.float64), v0=v0,
+                          shape=shape, loo=loo, kink_frame=kink, phase=phase)
 
 
 def leading_phase(lib, q: np.ndarray, frames: Sequence[int], contact_cells: float = 1.0,
@@ -182,8 +181,7 @@ def leading_phase(lib, q: np.ndarray, frames: Sequence[int], contact_cells: floa
 def observed_motion(lib, q: np.ndarray, frames: Optional[Sequence[int]] = None) -> Optional[ObservedMotion]:
     """:func:`fit_motion` on the stage-0 surfaces' centroids over the first long enough phase of
     the base prediction ``q`` (:func:`leading_phase`; among ``frames``, default the library's fit
-    frames). ``None`` without enough
-    frames in the phase or observed surfaces."""
+    frames). ``None`` without enough frames in the phase or observed surfaces."""
     inp = lib.input
     frames = list(lib.fit_frames if frames is None else frames)
     try:
@@ -196,25 +194,21 @@ def observed_motion(lib, q: np.ndarray, frames: Optional[Sequence[int]] = None) 
         return None
     c = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in fl])
     t = np.array([float(inp.times[f]) for f in fl]) - float(inp.times[0])
-    m = lib.module
-    if getattr(m, "optimize_gravity", False):
-        g = [float(q[lib.index_of[f"gravity.{a}"]]) for a in "xyz"]
-    else:
-        g = m.gravity.detach().double().cpu().numpy().tolist()
+    g = lib.gravity(q).detach().double().cpu().numpy()
     return fit_motion(c, t, g, frames=fl, phase=phase)
 
 
-def acceleration_start(lib, q: np.ndarray, flight: Optional[ObservedMotion]) -> Optional[np.ndarray]:
+def acceleration_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> Optional[np.ndarray]:
     """``q`` with the extra acceleration at the flight's unexplained acceleration
     (:attr:`ObservedMotion.extra`) and v0 at the flight's, clipped to the library's bounds;
     ``None`` unless a flight bends smoothly, or without an extra-acceleration candidate."""
-    if (flight is None or flight.phase != "flight" or flight.shape != "smooth"
+    if (motion is None or motion.phase != "flight" or motion.shape != "smooth"
             or "extra_acceleration.ax" not in lib.index_of):
         return None
     q = np.asarray(q, np.float64).copy()
-    for a, v in zip(("ax", "ay", "az"), flight.extra):
+    for a, v in zip(("ax", "ay", "az"), motion.extra):
         q[lib.index_of[f"extra_acceleration.{a}"]] = v
-    for a, v in zip("xyz", flight.v0):
+    for a, v in zip("xyz", motion.v0):
         q[lib.index_of[f"v0.{a}"]] = v
     return lib.clip(q)
 

@@ -331,6 +331,13 @@ class LibraryModel:
         k = torch.as_tensor(list(frames), dtype=torch.float64)
         return k * (1.0 + rate) + off
 
+    def gravity(self, q) -> torch.Tensor:
+        """Gravity (3,) in m/s^2 at ``q``: its parameters when the base fits it, else the module's."""
+        if self.module.optimize_gravity:
+            qt = self._t(q)
+            return torch.stack([qt[self.index_of[f"gravity.{a}"]] for a in "xyz"]).float().to(self.device)
+        return self.module.gravity.detach()
+
     def trajectory(self, q, frames: Sequence[int], grad: bool = False):
         """Particle positions at the observed ``frames``.
 
@@ -342,10 +349,7 @@ class LibraryModel:
         shift = torch.stack([self._get(qt, f"shift.{a}") for a in "xyz"]).float().to(self.device)
         x0 = (m.particles0 + m.particle_offset.detach()) + shift
         v0 = torch.stack([qt[self.index_of[f"v0.{a}"]] for a in "xyz"]).float().to(self.device)
-        if m.optimize_gravity:
-            gravity = torch.stack([qt[self.index_of[f"gravity.{a}"]] for a in "xyz"]).float().to(self.device)
-        else:
-            gravity = m.gravity.detach()
+        gravity = self.gravity(qt)
         params = self.material_tensor(qt)
         effects = self.effect_tensor(qt)
         times = self.frame_times(qt, frames)

@@ -15,6 +15,7 @@ from typing import Optional
 import numpy as np
 
 from toolkit.discovery.confirm import Refit, lm_refit
+from toolkit.discovery.kinematics import acceleration_start
 from toolkit.discovery.library import LibraryModel
 
 __all__ = ["refit_candidate", "final_refit", "start_point"]
@@ -70,8 +71,6 @@ def refit_candidate(lib: LibraryModel, plib: Optional[LibraryModel], state: dict
     rf = lm_refit(lib, q, free, name, iterations=iterations)
     if name == "extra_acceleration":
         rf.extra = {"start": "prediction"}
-        from toolkit.discovery.kinematics import acceleration_start
-
         q2 = acceleration_start(lib, base.q, motion)
         if q2 is not None:
             lib.assign(base.q)

@@ -46,8 +46,7 @@ from toolkit.discovery.gap import evaluate_state, gap_shrink, ground_truth_cloud
 from toolkit.discovery.kinematics import observed_motion, preferred_candidates
 from toolkit.discovery.library import LibraryModel
 from toolkit.discovery.ranking import Ranking, rank_candidates
-from toolkit.discovery.refits import final_refit as _final_refit
-from toolkit.discovery.refits import refit_candidate as _refit_candidate
+from toolkit.discovery.refits import final_refit, refit_candidate
 from toolkit.discovery.residuals import Localization, localize
 from toolkit.discovery.selection import criterion_noise, decide, passes, penalized, relative_improvements, validation_components
 
@@ -304,7 +303,7 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     joint = absorbed_candidates(ranking, state, lib, undetermined, [s.name for s in chosen])
     chosen += [ranking.get(n) for n in joint]
     for s in chosen:
-        refits[s.name] = _refit_candidate(lib, plib, state, s, refits["base"], refit_iterations, motion=motion)
+        refits[s.name] = refit_candidate(lib, plib, state, s, refits["base"], refit_iterations, motion=motion)
     if "camera_pose" in refits:  # narrowed to the one camera that carries the improvement
         from toolkit.discovery.camera import single_camera_refit
 
@@ -333,17 +332,17 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
         plib.fit_frames = list(range(n_train))
     final = None
     if decision is not None:
-        final = _final_refit(lib, plib, state, decision, refits[decision], final_iterations)
+        final = final_refit(lib, plib, state, decision, refits[decision], final_iterations)
     truth_refit = None
     tc = truth.get("expected") if truth else None
     if tc is not None and tc != decision and tc in {c.name for c in lib.candidates} | ({"plastic_yield"} if plib else set()):
         try:
             seed_fit = refits.get(tc)
             if seed_fit is None:
-                seed_fit = _refit_candidate(lib, plib, state, ranking.get(tc), refits["base"], refit_iterations, motion) \
+                seed_fit = refit_candidate(lib, plib, state, ranking.get(tc), refits["base"], refit_iterations, motion) \
                     if tc in ranking.names else None
             if seed_fit is not None:
-                truth_refit = _final_refit(lib, plib, state, tc, seed_fit, final_iterations)
+                truth_refit = final_refit(lib, plib, state, tc, seed_fit, final_iterations)
         except Exception as exc:  # the reference must not break the discovery
             log.warning("refit of the true candidate %s failed: %s", tc, exc)
     seconds["final"] = time.time() - t
