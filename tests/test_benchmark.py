@@ -344,6 +344,28 @@ def test_local_executor_gives_each_job_the_least_busy_gpu(tmp_path):
         LocalExecutor(1, [])
 
 
+def test_least_loaded_gpu_spreads_the_longest_jobs():
+    from toolkit.benchmark.executors import least_loaded_gpu
+
+    gpus, slots = ["g0", "g1"], {"g0": 2, "g1": 2}
+    # jobs of 1000, 100, 1000, 100 s arriving in that order: counting jobs alone puts both long
+    # ones on g0 (g0, g1, g0, g1); by estimated work left they go to different GPUs
+    running: list = []
+    for est in (1000.0, 100.0, 1000.0, 100.0):
+        g = least_loaded_gpu(gpus, slots, running, now=0.0)
+        running.append((g, 0.0, est))
+    per_gpu = {g: sorted(e for gg, _, e in running if gg == g) for g in gpus}
+    assert per_gpu == {"g0": [100.0, 1000.0], "g1": [100.0, 1000.0]}
+    # a full GPU is not chosen however light its jobs; elapsed time counts against the estimate,
+    # down to a tenth of it for a job past its estimate
+    assert least_loaded_gpu(gpus, {"g0": 1, "g1": 2}, [("g0", 0.0, 1.0), ("g1", 0.0, 500.0)], now=0.0) == "g1"
+    busy = [("g0", 800.0, 400.0), ("g1", 0.0, 1000.0)]
+    assert least_loaded_gpu(gpus, slots, busy, now=800.0) == "g1"  # 400 s left on g0, 200 s on g1
+    assert least_loaded_gpu(gpus, slots, busy, now=1200.0) == "g0"  # 40 s (a tenth) against 100 s
+    # ties go to the first listed
+    assert least_loaded_gpu(gpus, slots, [], now=0.0) == "g0"
+
+
 _NOT_PYTHON_MAIN = r"""
 import json, sys, types
 from pathlib import Path
@@ -441,6 +463,14 @@ def test_interrupted_fit_resumes_where_it_stopped(suite, tmp_path):
 
     ckpt = torch.load(run / "physics" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert ckpt["projo4d"]["curriculum_step"] == 4
+    # the marker keeps where the fit stopped (a lent machine takes the checkpoint with it)
+    stopped = marker["result"]["stopped_at"]
+    last = ckpt["projo4d"]["history"][-1]
+    assert stopped["iteration"] == 4 and stopped["of"] == 7 and stopped["stage"] == last["stage_name"]
+    assert stopped["errors"]["E"] == pytest.approx(last["error/E"]) and stopped["errors"]["E"] > 0
+    assert stopped["parameters"]["param/E"] == pytest.approx(last["param/E"])
+    assert stopped["material_final"] is False  # stopped in a stage that still fits the material
+    assert next(e for e in events if e["event"] == "interrupted")["stopped_at"]["iteration"] == 4
     second = run_benchmark(spec, tmp_path / "b", workers=1, echo=events.append, figures=False)
     assert second["complete"]
     assert [e["job"] for e in events if e["event"] == "start"] == [
@@ -449,6 +479,33 @@ def test_interrupted_fit_resumes_where_it_stopped(suite, tmp_path):
     assert [h["step"] for h in history] == list(range(1, 8))
     marker = json.loads((run / "job.json").read_text())
     assert marker["status"] == "done" and [a["status"] for a in marker["attempts"]] == ["interrupted", "done"]
+
+
+def test_stopped_fit_state_says_whether_the_material_was_final(tmp_path):
+    """A sequential fit stopped in its appearance stage has its final parameters: only ``A`` is
+    left. Stopped in the material stage, it has not."""
+    import torch
+
+    from toolkit.benchmark.jobs import stopped_fit_state
+
+    stages = [{"name": "S@3", "groups": "S", "end": 3}, {"name": "M", "groups": "M", "end": 8},
+              {"name": "A", "groups": "A", "end": 20}]
+
+    def state(step: int) -> dict:
+        history = [{"step": k, "stage_name": "M" if k <= 8 else "A", "param/E": 1e4 + k, "error/E": 0.1 * k,
+                    **({"eval/cd_future": 2.0 / k, "eval/emd_future": 0.01} if k in (3, 8) else {})} for k in range(1, step + 1)]
+        path = tmp_path / f"s{step}.ckpt"
+        torch.save({"projo4d": {"history": history, "curriculum": stages}}, path)
+        return stopped_fit_state(path)
+
+    in_appearance, in_material = state(12), state(6)
+    assert in_appearance["material_final"] is True and in_appearance["stage"] == "A"
+    assert in_appearance["iteration"] == 12 and in_appearance["of"] == 20
+    assert in_appearance["errors"] == {"E": pytest.approx(1.2)} and in_appearance["parameters"] == {"param/E": 10012}
+    assert in_appearance["evaluation"] == {"step": 8, "cd_future": 0.25, "emd_future": 0.01}
+    assert in_material["material_final"] is False and in_material["evaluation"]["step"] == 3
+    assert state(8)["material_final"] is True  # the material stage's last iteration was done
+    assert stopped_fit_state(tmp_path / "missing.ckpt") is None
 
 
 def test_a_fit_whose_grid_check_fails_is_refined_and_recorded_by_its_refined_result(suite, tmp_path, monkeypatch):

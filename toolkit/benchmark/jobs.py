@@ -28,7 +28,7 @@ import traceback
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["execute_job", "read_marker", "job_is_done", "JobInterrupted", "MARKER"]
+__all__ = ["execute_job", "read_marker", "job_is_done", "stopped_fit_state", "JobInterrupted", "MARKER"]
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +137,49 @@ def _redirect_output(path: Optional[str]):
             os.close(saved[1])
 
 
+# ------------------------------------------------------------------------------------ a stopped fit
+def stopped_fit_state(checkpoint: str | Path) -> Optional[dict]:
+    """Where a stopped fit was, from its saved checkpoint; ``None`` when there is none to read.
+
+    A fit stopped by a deadline keeps its checkpoint only on the machine it ran on, and a lent
+    machine goes back with it; its marker keeps this instead. Returns ``{"iteration", "of",
+    "stage", "parameters", "errors", "evaluation", "material_final"}``: the last finished
+    iteration of ``of``, its stage's name, the parameter values (``param/...``, ``v0/...``) and
+    errors (``error/...``, those of :func:`toolkit.metrics.parameter_errors`) at that iteration,
+    the last periodic evaluation (``{"step", "cd_future", "emd_future"}`` or ``None``), and
+    whether no later stage optimizes anything but appearance (``A``), so that the parameters and
+    the predicted future were already final (a sequential fit stopped in its appearance stage).
+    These are the training-time numbers, not the final evaluation's: a stopped fit has no summary
+    and is not in the tables.
+    """
+    import torch
+
+    path = Path(checkpoint)
+    if not path.is_file():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False, mmap=True).get("projo4d") or {}
+    except Exception:  # noqa: BLE001 - an unreadable checkpoint: nothing to report
+        return None
+    history, stages = state.get("history") or [], state.get("curriculum") or []
+    if not history:
+        return None
+    last = history[-1]
+    step = int(last.get("step", 0))
+    later = [st for st in stages if int(st.get("end", 0)) > step]
+    evals = [r for r in history if "eval/cd_future" in r]
+    return {
+        "iteration": step,
+        "of": int(stages[-1]["end"]) if stages else None,
+        "stage": last.get("stage_name"),
+        "parameters": {k: v for k, v in last.items() if k.startswith(("param/", "v0/"))},
+        "errors": {k.split("/", 1)[1]: v for k, v in last.items() if k.startswith("error/")},
+        "evaluation": ({"step": evals[-1].get("step"), "cd_future": evals[-1].get("eval/cd_future"),
+                        "emd_future": evals[-1].get("eval/emd_future")} if evals else None),
+        "material_final": bool(later) and all(set(str(st.get("groups", ""))) <= {"A"} for st in later),
+    }
+
+
 # ------------------------------------------------------------------------------------ entry point
 def execute_job(job: dict) -> dict:
     """Run one job (``generate``, ``variant``, ``prepare`` or ``fit``) here and return its result.
@@ -172,6 +215,10 @@ def execute_job(job: dict) -> dict:
             status, error = "failed", f"{type(exc).__name__}: {exc}" + (f" [{note}]" if note else "")
             traceback.print_exc()
     wall = time.perf_counter() - t0
+    if status == "interrupted" and job["kind"] == "fit":
+        stopped = stopped_fit_state(Path(job["folder"]) / "physics" / "checkpoints" / "last.ckpt")
+        if stopped is not None:
+            result = {**result, "stopped_at": stopped}
     if job["kind"] not in ("generate", "variant"):  # those two are recognised by their files
         _write_marker(job, status, wall, result, error)
     return {"id": job["id"], "status": status, "wall_s": round(wall, 2), "result": result, "error": error,

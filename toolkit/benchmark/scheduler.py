@@ -136,7 +136,8 @@ def run_jobs(jobs: Sequence[dict], executor, emit: Callable[..., dict], *, deadl
             emit("failed", **fields, error=res.get("error"), log=job.get("extra", {}).get("log"))
         else:
             state[job["id"]] = "interrupted"
-            emit("interrupted", **fields, error=res.get("error"))
+            stopped = (res.get("result") or {}).get("stopped_at")
+            emit("interrupted", **fields, error=res.get("error"), **({"stopped_at": stopped} if stopped else {}))
         if on_done is not None:
             on_done(job, res)
 
