@@ -545,6 +545,39 @@ def test_changed_settings_are_refused_unless_redone(bench, capsys):
         main(args + ["--dry-run"])
 
 
+def test_a_scene_generated_from_another_spec_makes_its_stage0_and_fits_stale(tmp_path):
+    """Another --suite-seed, --suite-overrides or --shape-set in the same --out regenerates a scene;
+    its stage 0 and fits (whose fingerprints do not hold the scene's spec) must not be reused."""
+    from toolkit.benchmark.plan import BenchmarkError
+    from toolkit.benchmark.runner import _check_changed
+    from toolkit.synthetic.scene import GENERATOR_VERSION
+
+    def scene(name: str, made_from: "str | None", wanted: str) -> list[dict]:
+        folder = tmp_path / "suite" / name
+        if made_from is not None:
+            folder.mkdir(parents=True)
+            (folder / "ground_truth.json").write_text(json.dumps(
+                {"generator": {"spec": {"shape": made_from, "size": [0.1, 0.2]}, "version": GENERATOR_VERSION}}))
+        jobs = [{"id": f"generate:{name}", "kind": "generate", "folder": str(folder), "fingerprint": "g", "scene": name,
+                 "settings": {"spec": {"shape": wanted, "size": (0.1, 0.2)}}, "depends": []}]
+        for kind, dep in (("prepare", f"generate:{name}"), ("fit", f"prepare:{name}")):
+            job_dir = tmp_path / kind / name
+            job_dir.mkdir(parents=True)
+            (job_dir / "job.json").write_text(json.dumps({"status": "done", "fingerprint": kind}))
+            jobs.append({"id": f"{kind}:{name}", "kind": kind, "folder": str(job_dir), "fingerprint": kind, "depends": [dep]})
+        return jobs
+
+    jobs = scene("a", "box", "apple") + scene("b", "torus", "torus") + scene("c", None, "cream")
+    with pytest.raises(BenchmarkError, match=r"3 job folder\(s\).*\(generate:a, prepare:a, fit:a\); scene\(s\) a hold a scene "
+                                             r"generated from another spec"):
+        _check_changed(jobs, False, lambda *a, **k: None)
+    redone = []
+    _check_changed(jobs, True, lambda event, **k: redone.append(k["job"]))
+    assert redone == ["generate:a", "prepare:a", "fit:a"]
+    assert not (tmp_path / "suite" / "a").exists() and not (tmp_path / "prepare" / "a").exists()
+    assert (tmp_path / "prepare" / "b" / "job.json").is_file() and (tmp_path / "fit" / "c" / "job.json").is_file()
+
+
 # ------------------------------------------------------------------------------------ evaluate and view
 def test_evaluate_command_re_evaluates_a_run_folder(bench, capsys):
     run = bench["out"] / "runs" / "neo_hookean" / "001" / "cams3" / "sequential"

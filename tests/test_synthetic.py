@@ -346,6 +346,39 @@ def test_suite_draws_are_deterministic_and_in_range():
             assert lo - 1e-4 <= x <= hi + 1e-4
 
 
+def test_spring_gaus_shape_set_takes_the_seven_objects_in_turn_with_the_same_draws():
+    from toolkit.synthetic.suite import SPRING_GAUS_SHAPES
+
+    specs = [sample_scene_spec("neo_hookean", i, seed=3, size="full", shape_set="spring_gaus") for i in range(8)]
+    assert [s.shape for s in specs] == ["apple", "banana", "chess", "cream", "cross", "paste", "torus", "apple"]
+    assert tuple(s.shape for s in specs[:7]) == SPRING_GAUS_SHAPES
+    for i, spec in enumerate(specs):
+        validate_spec(spec)
+        build_object(spec)  # above the ground, whatever the shape
+        default = sample_scene_spec("neo_hookean", i, seed=3, size="full")
+        # only the shape (and what it implies: sizes, release height) differs from the default set
+        assert (spec.params, spec.v0, spec.rotation_deg, spec.seed) == (default.params, default.v0, default.rotation_deg, default.seed)
+        lowest = spec.position[1] - build_shape(spec.shape, **spec.shape_size).apply_transform(
+            trimesh.transformations.euler_matrix(*np.radians(spec.rotation_deg), axes="sxyz")).extents[1] / 2
+        assert 0.12 - 1e-3 <= lowest <= 0.35 + 1e-3  # released as high above the ground as any suite scene
+    with pytest.raises(SpecError, match="unknown shape set 'spring'; choose from pac_nerf, spring_gaus"):
+        sample_scene_spec("neo_hookean", 0, shape_set="spring")
+
+
+def test_a_generated_benchmark_suite_keeps_its_shape_set(tmp_path, monkeypatch):
+    """scenes_to_generate draws the shape set's shapes, and the suite index written after the
+    generate jobs is asked for the same set (else it would generate other shapes again)."""
+    from toolkit.benchmark import runner
+    from toolkit.benchmark.scenes import scenes_to_generate
+
+    scenes = scenes_to_generate(tmp_path, ["neo_hookean"], 3, seed=0, size="small", shape_set="spring_gaus")
+    assert [sc.generate["spec"]["shape"] for sc in scenes] == ["apple", "banana", "chess"]
+    calls = []
+    monkeypatch.setattr("toolkit.synthetic.suite.generate_suite", lambda *a, **k: calls.append(k))
+    runner._write_suite_index(type("Spec", (), {"scenes": scenes})())
+    assert [c["shape_set"] for c in calls] == ["spring_gaus"]
+
+
 def test_suite_writes_an_index_and_skips_complete_scenes(tmp_path, monkeypatch):
     tiny = {k: v for k, v in TINY.items() if k not in ("shape", "shape_size", "position", "v0", "params")}
     index = generate_suite(tmp_path, ["neo_hookean"], 1, seed=5, size="small", spec_overrides=tiny, progress=False)

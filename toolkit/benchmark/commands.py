@@ -81,6 +81,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--suite-size", choices=["small", "full"], help="size preset of generated scenes (default: --size)")
     src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
     src.add_argument("--suite-overrides", type=json_arg, help="JSON SceneSpec fields for every generated scene")
+    src.add_argument("--shape-set", choices=["pac_nerf", "spring_gaus"], default="pac_nerf",
+                     help="shapes of generated scenes: pac_nerf (default, a random shape each) or spring_gaus (apple, "
+                          "banana, chess, cream, cross, paste, torus in turn)")
     src.add_argument("--material", help="material of --scenes (default: each scene's recorded ground truth)")
     src.add_argument("--dataset", help="config prefix: the material's configs/<dataset>_*.yaml (default synthetic for "
                                        "suites, pacnerf for --scenes)")
@@ -183,7 +186,7 @@ def spec_from_args(args: argparse.Namespace):
             raise BenchmarkError("--generate needs --families and --per-family")
         device = "cpu" if args.device == "cpu" else _generation_device(args)
         scenes = scenes_to_generate(args.suite, args.families, args.per_family, args.suite_seed, args.suite_size or args.size,
-                                    device, args.suite_overrides)
+                                    device, args.suite_overrides, shape_set=args.shape_set)
         dataset = args.dataset or "synthetic"
     else:
         scenes = scenes_from_suite(args.suite, args.families, args.per_family)

@@ -85,24 +85,54 @@ def _restore_sigterm(previous) -> None:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _scene_from_other_spec(job: dict) -> bool:
+    """A ``generate`` job whose folder holds a scene made from another spec or generator version
+    (another ``--suite-seed``, ``--suite-overrides`` or ``--shape-set`` in the same ``--out``)."""
+    from toolkit.synthetic.scene import GENERATOR_VERSION
+
+    gt = Path(job["folder"]) / "ground_truth.json"
+    if not gt.is_file():
+        return False
+    try:
+        made = json.loads(gt.read_text()).get("generator") or {}
+    except (ValueError, OSError):
+        return False
+    wanted = json.loads(json.dumps(job["settings"]["spec"]))
+    return made.get("spec") != wanted or made.get("version") != GENERATOR_VERSION
+
+
 def _check_changed(jobs: Sequence[dict], redo_changed: bool, emit) -> None:
     """Jobs whose folder holds results of other settings: an error, or removed with ``redo_changed``."""
     from toolkit.benchmark.jobs import read_marker
     from toolkit.benchmark.plan import BenchmarkError
 
     changed = []
+    regenerated = {j["id"] for j in jobs if j["kind"] == "generate" and _scene_from_other_spec(j)}
+    stale = set(regenerated)  # a scene generated again makes its stage 0s and fits stale, whatever their markers say
+    grew = True
+    while grew:
+        grew = False
+        for j in jobs:
+            if j["id"] not in stale and any(d in stale for d in j.get("depends", [])):
+                stale.add(j["id"])
+                grew = True
     for j in jobs:
         if j["kind"] == "generate":
+            if j["id"] in regenerated:
+                changed.append(j)
             continue
         m = read_marker(j["folder"])
-        if m and m.get("fingerprint") != j["fingerprint"]:
+        if m and (m.get("fingerprint") != j["fingerprint"] or j["id"] in stale):
             changed.append(j)
     if not changed:
         return
     if not redo_changed:
         names = ", ".join(j["id"] for j in changed[:5]) + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
-        raise BenchmarkError(f"{len(changed)} job folder(s) hold results made with other settings ({names}); rerun with "
-                             "the same settings, choose another --out, or pass --redo-changed to delete and redo them")
+        scenes = sorted(j["scene"] for j in jobs if j["id"] in regenerated)
+        why = (f"; scene(s) {', '.join(scenes)} hold a scene generated from another spec (--suite-seed, "
+               "--suite-overrides or --shape-set), so their stage 0s and fits are stale too" if scenes else "")
+        raise BenchmarkError(f"{len(changed)} job folder(s) hold results made with other settings ({names}){why}; rerun "
+                             "with the same settings, choose another --out, or pass --redo-changed to delete and redo them")
     for j in changed:
         emit("redo", job=j["id"], folder=j["folder"])
         shutil.rmtree(j["folder"], ignore_errors=True)
@@ -119,7 +149,8 @@ def _write_suite_index(spec) -> None:
         from toolkit.synthetic.suite import generate_suite
 
         generate_suite(info["root"], families=info["families"], scenes_per_family=info["per_family"], seed=info["seed"],
-                       size=info["size"], device=info["device"], spec_overrides=info["spec_overrides"] or None, progress=False)
+                       size=info["size"], device=info["device"], spec_overrides=info["spec_overrides"] or None,
+                       shape_set=info.get("shape_set", "pac_nerf"), progress=False)
 
 
 def _export(bench: Path, export: Path, emit, budget: int = 15 * 2**20) -> list[Path]:

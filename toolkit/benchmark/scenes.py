@@ -38,7 +38,8 @@ def scenes_from_suite(suite_dir: str | Path, families: Optional[Sequence[str]] =
 
 
 def scenes_to_generate(suite_dir: str | Path, families: Sequence[str], per_family: int, seed: int = 0, size: str = "full",
-                       device: str = "cpu", spec_overrides: Optional[dict] = None) -> list[SceneEntry]:
+                       device: str = "cpu", spec_overrides: Optional[dict] = None, *,
+                       shape_set: str = "pac_nerf") -> list[SceneEntry]:
     """Scenes of a suite that the benchmark generates itself (one ``generate`` job each, in
     parallel); the same draws as :func:`toolkit.synthetic.generate_suite` with these arguments.
 
@@ -55,12 +56,13 @@ def scenes_to_generate(suite_dir: str | Path, families: Sequence[str], per_famil
     out = []
     for fam in families:
         for i in range(per_family):
-            spec = sample_scene_spec(fam, i, seed, size, device, **(spec_overrides or {}))
+            spec = sample_scene_spec(fam, i, seed, size, device, shape_set=shape_set, **(spec_overrides or {}))
             out.append(SceneEntry(name=f"{fam}/{i:03d}", path=str(root / fam / f"{i:03d}"), material=fam,
                                   generate={"spec": spec_to_dict(spec), "suite": {"root": str(root), "families": list(families),
                                                                                   "per_family": per_family, "seed": seed,
                                                                                   "size": size, "device": device,
-                                                                                  "spec_overrides": dict(spec_overrides or {})}}))
+                                                                                  "spec_overrides": dict(spec_overrides or {}),
+                                                                                  "shape_set": shape_set}}))
     return out
 
 

@@ -143,6 +143,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--families", nargs="+", choices=list(FAMILY_RANGES), default=list(FAMILY_RANGES),
                    help="material families (default: all five)")
     s.add_argument("--per-family", type=int, default=2, help="scenes per family (default 2)")
+    s.add_argument("--shape-set", choices=["pac_nerf", "spring_gaus"], default="pac_nerf",
+                   help="pac_nerf (default): a random shape per scene; spring_gaus: apple, banana, chess, cream, "
+                        "cross, paste, torus in turn (stand-ins for the Spring-Gaus objects)")
     _common(s, SIZE_PRESETS)
     _configure_variant(sub)
 
@@ -281,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
         if args.per_family < 1:
             parser.error(f"argument --per-family: must be >= 1, got {args.per_family}")
         index = generate_suite(args.out, args.families, args.per_family, args.seed, args.size, args.device,
-                               progress=not args.quiet)
+                               shape_set=args.shape_set, progress=not args.quiet)
         failed = [s["name"] for s in index["scenes"] if not s["complete"]]
         print(f"wrote {args.out / 'suite.json'}: {len(index['scenes']) - len(failed)} of {len(index['scenes'])} scenes complete")
         if failed:

@@ -11,7 +11,9 @@ sizes imply::
 
 Composite shapes (``cross``, ``letter_l``, ``letter_t``) are unions of axis-aligned boxes on a
 rectilinear grid, built face by face (no boolean engine needed), so they are exactly closed.
-``banana`` is a capsule bent along a circular arc; the bend preserves volume.
+``banana`` is a capsule bent along a circular arc; the bend preserves volume. ``apple``,
+``chess``, ``cream`` and ``paste`` stand in for the Spring-Gaus objects
+(:mod:`toolkit.synthetic.revolved_shapes`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Callable, Mapping
 import numpy as np
 import trimesh
 
+from toolkit.synthetic import revolved_shapes as revolved
 from toolkit.synthetic.errors import MeshFileError, SpecError
 
 __all__ = ["ShapeBuilder", "SHAPES", "get_shape", "build_shape", "load_mesh_file", "box_union_mesh", "check_mesh"]
@@ -310,6 +313,15 @@ SHAPES: dict[str, ShapeBuilder] = {
             "banana", _banana, {"radius": 0.04, "length": 0.3, "bend_deg": 90.0}, _banana_extents,
             "capsule bent along a circular arc in the xy plane (length along the centreline)", _check_banana,
         ),
+        # stand-ins for the other Spring-Gaus objects (toolkit.synthetic.revolved_shapes)
+        ShapeBuilder("apple", revolved.apple, {"radius": 0.09, "height": 0.16}, revolved.apple_extents,
+                     "flattened sphere with a dimple at each pole (axis +y)", revolved.check_apple),
+        ShapeBuilder("chess", revolved.chess, {"width": 0.12, "height": 0.2}, revolved.chess_extents,
+                     "chess pawn standing on +y (base, stem, collar, ball head)", revolved.check_chess),
+        ShapeBuilder("cream", revolved.cream, {"base_radius": 0.1, "height": 0.16}, revolved.cream_extents,
+                     "soft-serve dollop of three tiers narrowing to a tip on +y", revolved.check_cream),
+        ShapeBuilder("paste", revolved.paste, {"length": 0.26, "width": 0.08, "thickness": 0.05}, revolved.paste_extents,
+                     "bead of paste: a capsule along x flattened in y", revolved.check_paste),
     )
 }
 

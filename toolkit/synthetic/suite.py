@@ -25,7 +25,7 @@ plasticine      log10 E in [4.5, 6.0] Pa, nu in [0.2, 0.4], log10 tau_Y in [2.5,
 sand            friction angle in [20, 45] deg (E = 1e6 Pa, nu = 0.3 fixed, as PAC-NeRF)
 =============== ========================================================================
 
-Throws: a random shape of :data:`SUITE_SHAPES` scaled by [0.8, 1.2], a random orientation,
+Throws: a random shape of :data:`SUITE_SHAPES` (or the shape set's, :data:`SHAPE_SETS`) scaled by [0.8, 1.2], a random orientation,
 released with its lowest point 0.12-0.35 m above the ground (PAC-NeRF: the object hits the
 ground around frame 5) at a horizontal speed of 0.3-1.5 m/s in a random direction plus a
 vertical speed in [-1.0, 0.5] m/s; gravity (0, -9.8, 0); sticky ground; no extra effects.
@@ -51,7 +51,7 @@ from toolkit.synthetic.scene import generate_scene, scene_is_complete
 from toolkit.synthetic.shapes import SHAPES
 from toolkit.synthetic.spec import SIZE_PRESETS, SceneSpec
 
-__all__ = ["FAMILY_RANGES", "SUITE_SHAPES", "THROW", "sample_scene_spec", "generate_suite"]
+__all__ = ["FAMILY_RANGES", "SUITE_SHAPES", "SPRING_GAUS_SHAPES", "SHAPE_SETS", "THROW", "sample_scene_spec", "generate_suite"]
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +71,14 @@ FAMILY_RANGES: dict[str, dict[str, tuple[str, float, float]]] = {
 
 SUITE_SHAPES: tuple[str, ...] = ("torus", "box", "sphere", "cross", "capsule", "letter_l", "letter_t", "banana")
 
+#: named shape sets: ``pac_nerf`` (the default) draws a random shape of :data:`SUITE_SHAPES` for
+#: each scene; ``spring_gaus`` takes the seven Spring-Gaus objects in turn (scene ``i`` is
+#: ``SPRING_GAUS_SHAPES[i % 7]``: apple, banana, chess, cream, cross, paste, torus), built by
+#: :mod:`toolkit.synthetic.revolved_shapes` and :mod:`toolkit.synthetic.shapes` (stand-ins: the
+#: Spring-Gaus meshes are not in this repository).
+SPRING_GAUS_SHAPES: tuple[str, ...] = ("apple", "banana", "chess", "cream", "cross", "paste", "torus")
+SHAPE_SETS: dict[str, tuple[str, ...]] = {"pac_nerf": SUITE_SHAPES, "spring_gaus": SPRING_GAUS_SHAPES}
+
 #: how objects are thrown (see the module docstring).
 THROW = {
     "shape_scale": (0.8, 1.2),
@@ -89,19 +97,29 @@ def _draw_params(family: str, rng: np.random.Generator) -> dict[str, float]:
     return out
 
 
+def _check_shape_set(shape_set: str) -> None:
+    if shape_set not in SHAPE_SETS:
+        raise SpecError(f"unknown shape set {shape_set!r}; choose from {', '.join(SHAPE_SETS)}")
+
+
 def sample_scene_spec(
-    family: str, index: int, seed: int = 0, size: str = "small", device: str = "cpu", **overrides
+    family: str, index: int, seed: int = 0, size: str = "small", device: str = "cpu", *, shape_set: str = "pac_nerf",
+    **overrides
 ) -> SceneSpec:
     """The spec of scene ``index`` of ``family`` in a suite with ``seed`` (see the module docstring);
-    ``overrides`` replace fields of the result (e.g. ``width=32`` for a quick look)."""
+    ``shape_set`` names the shapes (:data:`SHAPE_SETS`); ``overrides`` replace fields of the
+    result (e.g. ``width=32`` for a quick look). Every draw but the shape is the same in every
+    shape set."""
     if family not in FAMILY_RANGES:
         raise SpecError(f"unknown material family {family!r}; choose from {', '.join(FAMILY_RANGES)}")
     if size not in SIZE_PRESETS:
         raise SpecError(f"unknown size {size!r}; choose 'small' or 'full'")
+    _check_shape_set(shape_set)
     family_id = list(FAMILY_RANGES).index(family)
     ss = np.random.SeedSequence([int(seed), family_id, int(index)])
     rng = np.random.default_rng(ss)
-    shape = SUITE_SHAPES[int(rng.integers(len(SUITE_SHAPES)))]
+    drawn = SUITE_SHAPES[int(rng.integers(len(SUITE_SHAPES)))]
+    shape = drawn if shape_set == "pac_nerf" else SHAPE_SETS[shape_set][int(index) % len(SHAPE_SETS[shape_set])]
     scale = float(rng.uniform(*THROW["shape_scale"]))
     sizes = {k: (v if k.endswith("_deg") else round(v * scale, 4)) for k, v in SHAPES[shape].defaults.items()}
     rotation = tuple(round(float(a), 2) for a in rng.uniform(0.0, 360.0, size=3))
@@ -139,6 +157,7 @@ def generate_suite(
     device: str = "cpu",
     *,
     spec_overrides: dict | None = None,
+    shape_set: str = "pac_nerf",
     progress: bool = True,
 ) -> dict:
     """Generate (or complete) a benchmark suite; returns the ``suite.json`` index.
@@ -152,6 +171,8 @@ def generate_suite(
         device: Warp device.
         spec_overrides: :class:`SceneSpec` fields to override in every scene (e.g. a smaller
             image size for a quick look); recorded in the index.
+        shape_set: the shapes (:data:`SHAPE_SETS`: ``pac_nerf``, drawn at random, or
+            ``spring_gaus``, the seven Spring-Gaus objects in turn); recorded in the index.
         progress: show progress.
 
     Raises:
@@ -171,12 +192,13 @@ def generate_suite(
         raise SpecError(f"scenes_per_family must be an integer >= 1, got {scenes_per_family!r}")
     if size not in SIZE_PRESETS:
         raise SpecError(f"unknown size {size!r}; choose 'small' or 'full'")
+    _check_shape_set(shape_set)
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
     scenes = []
     for family in families:
         for i in range(scenes_per_family):
-            spec = sample_scene_spec(family, i, seed, size, device, **(spec_overrides or {}))
+            spec = sample_scene_spec(family, i, seed, size, device, shape_set=shape_set, **(spec_overrides or {}))
             name = f"{family}/{i:03d}"
             path = root / family / f"{i:03d}"
             entry = {
@@ -207,7 +229,8 @@ def generate_suite(
         "scenes_per_family": scenes_per_family,
         "ranges": {f: {p: {"scale": s, "low": lo, "high": hi} for p, (s, lo, hi) in FAMILY_RANGES[f].items()} for f in families},
         "throw": {k: list(v) for k, v in THROW.items()},
-        "shapes": list(SUITE_SHAPES),
+        "shape_set": shape_set,
+        "shapes": list(SHAPE_SETS[shape_set]),
         "reference": "ranges around PAC-NeRF's starting guesses (xuan-li/PAC-NeRF configs/<family>/default.py); "
         "see toolkit.synthetic.suite",
         "scenes": scenes,
