@@ -655,6 +655,11 @@ def test_ray_executor_runs_jobs_and_stops_them_at_the_time_limit(tmp_path):
             for i, s in enumerate([0.2, 0.3, 60.0])]
     ex = RayExecutor(None, gpus_per_job=0.0, cpus_per_job=1.0, fn="tests.bench_helpers:sleepy_job")
     try:
+        # Ray starts its worker processes with the first tasks; on a loaded 2-core machine that took
+        # longer than the deadline below, so they are started before the clock runs
+        warm = [{"id": f"w{i}", "kind": "fit", "folder": str(tmp_path / f"w{i}"), "fingerprint": "x", "seconds": 0.0,
+                 "depends": []} for i in range(2)]
+        assert run_jobs(warm, ex, lambda e, **f: None, heartbeat=100)["done"] == 2
         counts = run_jobs(jobs, ex, lambda e, **f: events.append({"event": e, **f}), deadline=time.time() + 30.0, grace=3.0,
                           heartbeat=100, min_start_s=0)
     finally:
