@@ -66,6 +66,8 @@ def _gpus(text: str) -> list[str]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    from toolkit.synthetic.suite import SHAPE_SETS
+
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = __doc__.split("Examples::", 1)[1]
     src = parser.add_argument_group("scenes")
@@ -81,7 +83,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--suite-size", choices=["small", "full"], help="size preset of generated scenes (default: --size)")
     src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
     src.add_argument("--suite-overrides", type=json_arg, help="JSON SceneSpec fields for every generated scene")
-    src.add_argument("--shape-set", choices=["pac_nerf", "spring_gaus"], default="pac_nerf",
+    src.add_argument("--shape-set", choices=list(SHAPE_SETS), default="pac_nerf",
                      help="shapes of generated scenes: pac_nerf (default, a random shape each) or spring_gaus (apple, "
                           "banana, chess, cream, cross, paste, torus in turn)")
     src.add_argument("--material", help="material of --scenes (default: each scene's recorded ground truth)")

@@ -93,7 +93,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     from materials import MATERIALS
     from toolkit.synthetic.shapes import SHAPES
     from toolkit.synthetic.spec import SIZE_PRESETS
-    from toolkit.synthetic.suite import FAMILY_RANGES
+    from toolkit.synthetic.suite import FAMILY_RANGES, SHAPE_SETS
 
     sub = parser.add_subparsers(dest="what", metavar="{scene,suite,variant}", required=True)
 
@@ -143,7 +143,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--families", nargs="+", choices=list(FAMILY_RANGES), default=list(FAMILY_RANGES),
                    help="material families (default: all five)")
     s.add_argument("--per-family", type=int, default=2, help="scenes per family (default 2)")
-    s.add_argument("--shape-set", choices=["pac_nerf", "spring_gaus"], default="pac_nerf",
+    s.add_argument("--shape-set", choices=list(SHAPE_SETS), default="pac_nerf",
                    help="pac_nerf (default): a random shape per scene; spring_gaus: apple, banana, chess, cream, "
                         "cross, paste, torus in turn (stand-ins for the Spring-Gaus objects)")
     _common(s, SIZE_PRESETS)
