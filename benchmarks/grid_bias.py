@@ -20,6 +20,7 @@ truth (decades for log parameters)::
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --size full --fit-dx 0.01   # a finer fitting grid
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --truth-dx 0.02 --fit-dx 0.02  # control: the truth's grid
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --boundary separate          # another ground
+    python benchmarks/grid_bias.py --family neo_hookean --index 1 --shape-set spring_gaus      # the banana stand-in
 
 Benchmarks are never part of the test suite.
 """
@@ -57,6 +58,7 @@ def main() -> None:
     parser.add_argument("--index", type=int, default=0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--size", default="full", choices=["full", "small"])
+    parser.add_argument("--shape-set", default="pac_nerf", help="the suite's shape set (pac_nerf, spring_gaus)")
     parser.add_argument("--frames", type=int, default=14, help="frames simulated (default 14, the training frames)")
     parser.add_argument("--fit-dx", type=float, default=0.02, help="the fitting grid spacing, metres (default 0.02)")
     parser.add_argument("--param", default="E", help="the swept parameter (default E)")
@@ -89,7 +91,8 @@ def main() -> None:
 
     overrides = {"n_frames": args.frames, **({"dx": args.truth_dx} if args.truth_dx else {}),
                  **({"boundary": args.boundary} if args.boundary else {})}
-    spec = sample_scene_spec(args.family, args.index, args.seed, args.size, args.device, **overrides)
+    spec = sample_scene_spec(args.family, args.index, args.seed, args.size, args.device,
+                             shape_set=args.shape_set, **overrides)
     material = get_material(spec.material, **spec.material_options)
     try:
         p = material.param(args.param)

@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--time-limit", type=float, default=540.0, help="seconds per chunk (default 540)")
     p.add_argument("--start-limit", type=float, help="seconds after which no job starts; running ones finish (or --time-limit)")
     p.add_argument("--jobs-per-gpu", type=int, default=2)
-    p.add_argument("--gpus", help="GPU ids or a count (default: all)")
+    p.add_argument("--gpus", help="GPU ids '0,2', one id with a trailing comma '3,', or a count '4' (default: all)")
     p.add_argument("--export", default=os.environ.get("OUT"), help="copy tables and light results here (default $OUT)")
     p.add_argument("--dry-run", action="store_true", help="print the plan and estimates only")
     args = p.parse_args(argv)

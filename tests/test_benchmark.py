@@ -112,6 +112,13 @@ def test_camera_subsets_and_strategy_parsing():
         strategy_options(parse_strategy("joint", {"cycles": 2}), {}, "sand")
 
 
+def test_gpus_option_reads_ids_a_single_id_and_a_count():
+    from toolkit.benchmark.commands import _gpus
+
+    assert _gpus("0,2") == ["0", "2"] and _gpus("3,") == ["3"] and _gpus(" 1 , 3 ") == ["1", "3"]
+    assert _gpus("3") == ["0", "1", "2"]
+
+
 def test_substeps_keep_the_configs_courant_number_on_the_final_grid():
     """The config (synthetic elastic: dx 0.02 m, 100 substeps) scaled to the final grid: the small
     preset's 0.04 m halves the substeps; an override back to 0.02 m restores them; explicit

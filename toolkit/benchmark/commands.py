@@ -59,6 +59,8 @@ def _variant(text: str) -> tuple[str, dict]:
 
 
 def _gpus(text: str) -> list[str]:
+    """``--gpus``: ids ``"0,2"`` (a trailing comma makes one id: ``"3,"`` is GPU 3 alone, as in
+    Lightning's ``devices``) or a count ``"4"`` (GPUs 0-3)."""
     text = text.strip()
     if text.isdigit() and "," not in text:
         return [str(i) for i in range(int(text))]
@@ -137,7 +139,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                           "(--slurm-*) or one at a time in this process")
     run.add_argument("--workers", type=int, help="worker processes (default: GPUs x --jobs-per-gpu; 1 on a CPU); "
                                                  "with --executor slurm: jobs queued at a time (default 32)")
-    run.add_argument("--gpus", type=_gpus, help="GPU ids '0,1,2' or a count '4' (default: every visible GPU)")
+    run.add_argument("--gpus", type=_gpus, help="GPU ids '0,1,2' or a count '4' (GPUs 0-3); one id needs a trailing comma: "
+                     "'3,' is GPU 3 alone (default: every visible GPU)")
     run.add_argument("--jobs-per-gpu", type=int, default=1, help="jobs sharing one GPU (default 1)")
     run.add_argument("--threads", type=int, help="torch threads per worker (default: CPU cores / workers)")
     run.add_argument("--ray-address", help="Ray cluster address for --executor ray ('auto' = a running cluster)")
