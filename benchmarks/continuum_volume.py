@@ -21,6 +21,12 @@ Variants (``--variants``, default all), one setting changed at a time from ``bas
 * ``no_coarse``: no coarse-to-fine (grid_size 0.02, levels 1: the volume starts at 0.01 m).
 * ``truth_occupancy``: no carving at all: the true body's voxels at 0.01 m go through the
   smoothing (``density_volume``) and the interior threshold of the pipeline's config.
+* ``vertex_stamp``: ``centre_stamp=ellipsoid``: centres stamp the lattice vertices inside their
+  Gaussian's 1-sigma ellipsoid and every silhouette instead of the vertex nearest them.
+* ``opacity=P``: the Gaussians' opacity is P (semi-transparent: the rendered depth averages layers).
+* ``KEY=VALUE`` for any :class:`~toolkit.scene.continuum.ContinuumConfig` setting
+  (``carve_depth=opaque``, ``depth_margin=-1`` turns the depth test off). Settings join with
+  ``+`` (``vertex_stamp+all_cams``).
 
 One JSON line per scene x variant: ``ratio`` = particles / true count; ``carved_ratio`` = carved
 candidates / true count (step 3 alone); ``outside`` / ``missing`` = particles outside the true
@@ -36,6 +42,7 @@ Benchmarks are never part of the test suite.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -49,7 +56,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 #: family/index -> shape (suite seed 0, pac_nerf shape set): letter_t, letter_l, cross, box, capsule, sphere, banana
 DEFAULT_SCENES = ["neo_hookean/0", "neo_hookean/3", "sand/0", "neo_hookean/2", "neo_hookean/6", "sand/4", "neo_hookean/1"]
 DEFAULT_VARIANTS = ["base", "n_smooth=0", "n_smooth=5", "no_centres", "density_min=0.75", "all_cams", "no_coarse",
-                    "truth_occupancy"]
+                    "truth_occupancy", "vertex_stamp", "vertex_stamp+all_cams", "opacity=0.3", "opacity=0.3+vertex_stamp"]
 PIPELINE = {"grid_size": 0.08, "candidate_level": 3, "final_level": 3}
 TRAIN = [1, 5, 9]
 
@@ -86,12 +93,14 @@ def scene_inputs(family: str, index: int, seed: int, gauss_spacing: float):
 
 
 def variant_run(name: str, g, cams, masks, true_pts):
-    """(particles (N, 3), spacing, carved count or None) of one variant."""
+    """(particles (N, 3), spacing, carved count or None) of one variant; ``+`` joins settings."""
     import torch
 
+    from renderers.base import Gaussians
     from toolkit.scene import continuum as C
 
     cfg = dict(PIPELINE)
+    fields = C.ContinuumConfig().to_dict()
     cam_ids = list(TRAIN)
     patch = None
     if name == "truth_occupancy":
@@ -101,24 +110,27 @@ def variant_run(name: str, g, cams, masks, true_pts):
         vol, h = C.density_volume(pts, lo, hi, g_size, cfg["final_level"], C.ContinuumConfig().n_smooth)
         interior = C._box_blur(vol) >= C.ContinuumConfig().density_min
         return (interior.nonzero().float() * h + lo), h, None
-    if name.startswith("n_smooth="):
-        cfg["n_smooth"] = int(name.split("=")[1])
-    elif name.startswith("density_min="):
-        cfg["density_min"] = float(name.split("=")[1])
-    elif name == "all_cams":
-        cam_ids = list(range(len(cams)))
-    elif name == "no_coarse":
-        cfg.update(grid_size=0.02, candidate_level=1, final_level=1)
-    elif name == "no_centres":
-        real = C.density_volume
-        patch = mock.patch.object(C, "density_volume", lambda points, *a, **k: real(points[:0], *a, **k))
-    elif name != "base":
-        raise SystemExit(f"unknown variant {name!r}")
+    for part in name.split("+"):
+        key, _, value = part.partition("=")
+        if key in fields:  # any ContinuumConfig setting, cast to its default's type
+            cfg[key] = type(fields[key])(value)
+        elif key == "opacity":  # semi-transparent Gaussians: the rendered depth averages layers
+            p = float(value)
+            g = Gaussians(means=g.means, log_scales=g.log_scales, quats=g.quats,
+                          opacity_logits=torch.full_like(g.opacity_logits, math.log(p / (1 - p))), colors=g.colors)
+        elif key == "all_cams":
+            cam_ids = list(range(len(cams)))
+        elif key == "no_coarse":
+            cfg.update(grid_size=0.02, candidate_level=1, final_level=1)
+        elif key == "no_centres":
+            real = C.density_volume
+            patch = mock.patch.object(C, "density_volume", lambda points, *a, **k: real(points[:0], *a, **k))
+        elif key == "vertex_stamp":  # the name the first measurement used
+            cfg["centre_stamp"] = "ellipsoid"
+        elif key != "base":
+            raise SystemExit(f"unknown variant {part!r}")
     idx = torch.tensor(cam_ids)
-    if patch is not None:
-        with patch:
-            res = C.build_continuum(g, cams[idx], masks[:, idx], frames=[0], config=cfg, renderer="warp", device="cpu")
-    else:
+    with patch if patch is not None else contextlib.nullcontext():
         res = C.build_continuum(g, cams[idx], masks[:, idx], frames=[0], config=cfg, renderer="warp", device="cpu")
     return res.particles, res.spacing, res.stats["frames"][0].get("carved")
 
@@ -133,11 +145,15 @@ def main() -> None:
 
     import logging
 
-    import numpy as np
-    import warp as wp
-
-    wp.config.quiet = True
     logging.disable(logging.WARNING)
+    out = sys.stdout
+    with contextlib.redirect_stdout(sys.stderr):  # Warp's messages: stdout keeps the JSON lines only
+        run(args, out)
+
+
+def run(args, out) -> None:
+    import numpy as np
+
     from toolkit.synthetic.filling import fill_mesh, inside_mesh
 
     for item in args.scenes:
@@ -146,7 +162,7 @@ def main() -> None:
         true_cache: dict = {}
         for name in args.variants:
             t0 = time.perf_counter()
-            spacing_ref = 0.02 / 2 if name == "no_coarse" else PIPELINE["grid_size"] / 2 ** PIPELINE["final_level"]
+            spacing_ref = 0.02 / 2 if "no_coarse" in name.split("+") else PIPELINE["grid_size"] / 2 ** PIPELINE["final_level"]
             if spacing_ref not in true_cache:
                 true_cache[spacing_ref] = fill_mesh(mesh, spacing_ref, device="cpu")[0]
             true_pts = true_cache[spacing_ref]
@@ -163,7 +179,7 @@ def main() -> None:
                 "outside": outside, "missing": int(n_true - inside.sum()),
                 "shell_mm": round(outside * h**3 / float(mesh.area) * 1e3, 2),
                 "gaussians": len(g), "seconds": round(time.perf_counter() - t0, 1),
-            }), flush=True)
+            }), file=out, flush=True)
 
 
 if __name__ == "__main__":

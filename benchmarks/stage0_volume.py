@@ -6,11 +6,17 @@ one per interior voxel of its final lattice. The suite's true body, filled by th
 mass, at the config's density) the fit works with, relative to the truth's.
 
 Inputs are stage-0 records as the benchmark write-ups keep them (``FAMILY_INDEX.json`` with
-``continuum.frames[0].particles`` and ``spacing``), or ``--count FAMILY/INDEX=N`` for a run whose
-record was not kept (spacing ``--spacing``). One JSON line per scene::
+``continuum.frames[0].particles`` and ``spacing``), ``--count FAMILY/INDEX=N`` for a run whose
+record was not kept (spacing ``--spacing``), or ``--runs``: run folders of generated suite scenes
+with a finished stage 0 (``projo4d stage0 SUITE/FAMILY/INDEX --out RUN``), whose continuum is built
+again under each ``--variant`` (``KEY=VALUE`` settings of
+:class:`~toolkit.scene.continuum.ContinuumConfig` joined by ``+``, on the pipeline's lattice).
+One JSON line per scene (and variant)::
 
     python benchmarks/stage0_volume.py docs/results/paper_size/round8/stage0/*.json
     python benchmarks/stage0_volume.py --shape-set spring_gaus --count neo_hookean/006=4188
+    python benchmarks/stage0_volume.py --size small --runs runs/nh000 runs/sand000 \
+        --variant centre_stamp=voxel+carve_depth=expected centre_stamp=ellipsoid+carve_depth=opaque
 
 Benchmarks are never part of the test suite.
 """
@@ -18,6 +24,7 @@ Benchmarks are never part of the test suite.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import pathlib
 import sys
@@ -34,7 +41,15 @@ def main() -> None:
     parser.add_argument("--shape-set", default="pac_nerf", help="the suite's shape set of every scene given (one set per call)")
     parser.add_argument("--size", default="full", choices=["full", "small"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--runs", nargs="*", default=[], type=pathlib.Path, help="run folders with a finished stage 0")
+    parser.add_argument("--variant", nargs="*", default=["centre_stamp=voxel+carve_depth=expected"],
+                        help="continuum settings for --runs, KEY=VALUE joined by +")
     args = parser.parse_args()
+    if args.runs:
+        out = sys.stdout
+        with contextlib.redirect_stdout(sys.stderr):  # Warp's and Lightning's messages: stdout keeps the JSON lines
+            rebuild(args, out)
+        return
 
     from toolkit.synthetic.filling import fill_mesh
     from toolkit.synthetic.suite import sample_scene_spec
@@ -60,6 +75,46 @@ def main() -> None:
         print(json.dumps({"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape,
                           "spacing_m": spacing, "true_particles": len(particles), "stage0_particles": n_stage0,
                           "volume_ratio": round(n_stage0 / len(particles), 3), "source": source}), flush=True)
+
+
+def rebuild(args: argparse.Namespace, out) -> None:
+    """The continuum of each run's stage-0 model, built again under each variant."""
+    import torch
+
+    from toolkit.data import load_scene
+    from toolkit.pipeline import RunSettings, fit_stage0_step
+    from toolkit.scene.continuum import ContinuumConfig, build_continuum
+    from toolkit.synthetic.filling import fill_mesh
+    from toolkit.synthetic.suite import sample_scene_spec
+    from toolkit.synthetic.truth import build_object
+
+    fields = ContinuumConfig().to_dict()
+    for run in args.runs:
+        settings = RunSettings(**json.loads((run / "settings.json").read_text()))
+        scene_dir = pathlib.Path(settings.scene)
+        family, index = scene_dir.parent.name, int(scene_dir.name)
+        module, views = fit_stage0_step(settings, load_scene(scene_dir), run, {})  # a finished stage 0 is loaded
+        spec = sample_scene_spec(family, index, args.seed, args.size, "cpu", shape_set=args.shape_set)
+        dx = float(settings.sim.get("dx", 0.02))
+        true_counts: dict = {}
+        for variant in args.variant:
+            cfg = {"grid_size": 8 * dx / 2, "candidate_level": 3, "final_level": 3}
+            for part in variant.split("+"):
+                key, _, value = part.partition("=")
+                if key not in fields:
+                    raise SystemExit(f"--variant: {key!r} is not a continuum setting ({', '.join(fields)})")
+                cfg[key] = type(fields[key])(value)
+            with torch.no_grad():
+                cont = build_continuum(module, views, config=ContinuumConfig.from_dict(cfg), device="cpu", frames=[0])
+            if cont.spacing not in true_counts:
+                true_counts[cont.spacing] = len(fill_mesh(build_object(spec), cont.spacing, device="cpu")[0])
+            n_true = true_counts[cont.spacing]
+            print(json.dumps({"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape,
+                              "variant": variant, "spacing_m": cont.spacing, "true_particles": n_true,
+                              "stage0_particles": int(cont.particles.shape[0]),
+                              "volume_ratio": round(cont.particles.shape[0] / n_true, 3),
+                              "carve_ratio": round(cont.stats["frames"][0]["carved"] / n_true, 3), "source": str(run)}),
+                  file=out, flush=True)
 
 
 if __name__ == "__main__":

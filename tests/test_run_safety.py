@@ -329,6 +329,19 @@ def test_bad_settings_fail_in_one_line_before_any_work(scene, tmp_path, capsys, 
     assert not out.exists()  # nothing written
 
 
+def test_stage0_with_one_camera_is_refused_before_any_work(scene, tmp_path, capsys):
+    """``--cameras 3`` is camera 3 alone (not three cameras): stage 0 cannot bound a body with one
+    silhouette, so the run stops in one line naming the field (it divided by zero in stage 0's
+    initialization before)."""
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        main(["stage0", str(scene), "--out", str(out), "--device", "cpu", "--stage0", "tiny", "--cameras", "3"])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1, err
+    assert "cameras" in err and "at least 2 fitting cameras" in err and "[3]" in err, err
+    assert not out.exists()
+
+
 def test_batch_sizes_larger_than_the_data_are_said(scene, caplog):
     from toolkit.run_validation import validate_run_settings
 

@@ -103,6 +103,10 @@ def validate_run_settings(s) -> dict:
 
     scene = _check("scene", str(s.scene), lambda: load_scene(scene_dir))
     cameras = _check("cameras", s.cameras, lambda: resolve_cameras(scene, s.cameras))
+    if s.geometry == "stage0" and len(cameras) < 2:
+        raise SettingsError("cameras", s.cameras, "stage 0 needs at least 2 fitting cameras (their silhouettes bound "
+                                                  f"the body); this selects camera {cameras} alone. Use 'sparse', 'all' "
+                                                  "or comma-separated 0-based indices such as '1,5,9'")
     if s.n_train is not None and not (isinstance(s.n_train, int) and 1 <= s.n_train <= scene.n_frames):
         raise SettingsError("n_train", s.n_train, f"expected an integer in [1, {scene.n_frames}] ({scene.name} has "
                                                   f"{scene.n_frames} frames)")

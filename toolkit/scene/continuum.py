@@ -13,10 +13,14 @@ Procedure (GIC ``train_dynamic.py::prepare_gt``; facts, re-implemented), for eve
    a candidate survives when, in every view, it projects inside the image, onto the object mask
    (the ground-truth mask ``> mask_threshold`` and rendered alpha ``> alpha_threshold``; rendered
    alpha ``> 0.5`` when there are no masks) and *behind* the rendered depth there (camera ``z``
-   larger than the alpha-normalized rendered depth + ``depth_margin``).
-4. **Rasterize** the surviving candidates and the kept centres into an occupancy volume at
-   ``grid_size / 2`` (a voxel holding a point is set to 1; a candidate of a lattice coarser than
-   the volume sets every voxel of its cell).
+   larger than the depth + ``depth_margin``; GIC's alpha-normalized depth,
+   ``carve_depth="expected"``, or that of the Gaussians rendered opaque, ``"opaque"``).
+4. **Rasterize** the surviving candidates and the kept Gaussians into an occupancy volume at
+   ``grid_size / 2`` (a candidate sets the voxel holding it, or every voxel of its cell when its
+   lattice is coarser than the volume's; a Gaussian sets the voxel holding its centre, GIC's
+   ``centre_stamp="voxel"``, which grows every face by about 0.75 voxel, or with
+   ``centre_stamp="ellipsoid"`` the voxels whose centres lie inside its 1-sigma ellipsoid and
+   every view's silhouette: :mod:`toolkit.scene.continuum_stamp`).
 5. **Smooth coarse-to-fine**: for each finer level ``i = 2 .. final_level`` (spacing
    ``grid_size / 2**i``; GIC: down to /16), upsample trilinearly, blur with a 3x3x3 box filter,
    zero values below 0.5, and set the voxels holding points back to 1; then repeat
@@ -48,11 +52,12 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from renderers import get_renderer
 from renderers.base import Gaussians, Renderer
 from toolkit.cameras import Cameras
+from toolkit.scene.continuum_stamp import box_blur as _box_blur
+from toolkit.scene.continuum_stamp import density_volume
 from toolkit.settings import DictSettings
 
 __all__ = ["ContinuumConfig", "Continuum", "build_continuum", "sanitize_gaussians", "density_volume", "why_empty"]
@@ -74,12 +79,23 @@ class ContinuumConfig(DictSettings):
             against +2 % with 4, so the default carves the final lattice itself).
         final_level: Final volume spacing ``grid_size / 2**final_level`` (GIC 4).
         n_smooth: Blur / threshold / re-stamp passes at the final level (GIC 20).
+        centre_stamp: How a kept Gaussian marks the volume: ``"voxel"`` (default, GIC) sets
+            the vertex nearest its centre, which grows every face by about 0.75 voxel;
+            ``"ellipsoid"`` sets the lattice vertices inside its 1-sigma ellipsoid and every
+            view's silhouette (:mod:`toolkit.scene.continuum_stamp`). The two defaults' errors
+            partly cancel on real stage-0 models (``docs/results/continuum_volume.md``).
         density_min: Interior threshold (GIC ``density_min_th`` 0.5; Spring-Gaus 0.67).
         density_max: Surface upper threshold (GIC ``density_max_th`` 0.7; Spring-Gaus 0.8).
         opacity_threshold: Centres with lower opacity are ignored (GIC 0.01).
         mask_threshold: Ground-truth mask value above which a pixel is object.
         alpha_threshold: Rendered alpha above which a pixel is covered (GIC: rgb != 0 / > 1/255).
         depth_margin: Candidates must be this far behind the rendered depth, metres.
+        carve_depth: The depth of the carving test: ``"expected"`` (default, GIC) is the
+            alpha-normalized rendered depth, which lies behind the front surface where the
+            Gaussians are semi-transparent, so the carving removes body near that surface (GIC's
+            nearest-vertex stamping adds about as much back elsewhere); ``"opaque"`` renders every
+            Gaussian above ``opacity_threshold`` opaque, so the depth is that of the first
+            Gaussians along the ray (faint floaters then hide what lies behind them).
         max_scale: Gaussians with a larger standard deviation are dropped, metres (None:
             ``grid_size``).
         min_log_scale: Log-scales are clamped from below at this value (near-singular guard).
@@ -92,6 +108,8 @@ class ContinuumConfig(DictSettings):
     candidate_level: int = 4
     final_level: int = 4
     n_smooth: int = 20
+    centre_stamp: str = "voxel"
+    carve_depth: str = "expected"
     density_min: float = 0.5
     density_max: float = 0.7
     opacity_threshold: float = 0.01
@@ -199,78 +217,6 @@ def sanitize_gaussians(g: Gaussians, max_scale: float, min_log_scale: float = -2
     return kept, int(len(g) - idx.numel())
 
 
-def _box_blur(vol: torch.Tensor) -> torch.Tensor:
-    w = torch.full((1, 1, 3, 3, 3), 1.0 / 27.0, dtype=vol.dtype, device=vol.device)
-    return F.conv3d(vol[None, None], w, padding=1)[0, 0]
-
-
-def _stamp(vol: torch.Tensor, points: torch.Tensor, lo: torch.Tensor, h: float, cell: float = 0.0) -> None:
-    """Set to 1 the voxels holding ``points`` (nearest lattice vertex). A point standing for a
-    cell of side ``cell`` larger than ``h`` (a coarsened candidate lattice) sets the
-    ``round(cell / h)^3`` voxels of its cell."""
-    if points.numel() == 0:
-        return
-    dims = torch.tensor(vol.shape, device=vol.device)
-    ids = torch.round((points - lo) / h).long()
-    ratio = max(1, int(round(cell / h))) if cell > h else 1
-    if ratio > 1:
-        r = torch.arange(-(ratio // 2), ratio - ratio // 2, device=vol.device)
-        offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
-        ids = (ids[:, None, :] + offs[None]).reshape(-1, 3)
-    ids = torch.minimum(ids.clamp_min(0), dims - 1)
-    vol[ids[:, 0], ids[:, 1], ids[:, 2]] = 1.0
-
-
-def density_volume(
-    points: torch.Tensor,
-    lo: torch.Tensor,
-    hi: torch.Tensor,
-    grid_size: float,
-    final_level: int,
-    n_smooth: int,
-    cells: Optional[torch.Tensor] = None,
-    cell_size: float = 0.0,
-) -> tuple[torch.Tensor, float]:
-    """Steps 4-5 of the module docstring.
-
-    Args:
-        points: (P, 3) points to rasterize (e.g. the kept Gaussian centres), metres.
-        lo, hi: (3,) box corners, metres.
-        grid_size: Coarse spacing, metres.
-        final_level: Finest level (spacing ``grid_size / 2**final_level``), >= 1.
-        n_smooth: Smoothing passes at the finest level.
-        cells: (Q, 3) lattice points that each stand for a cube of side ``cell_size`` (the
-            carved candidates), metres.
-        cell_size: Spacing of ``cells``, metres.
-
-    Returns:
-        ``(volume (X, Y, Z), spacing)``; voxel ``(i, j, k)`` sits at ``lo + (i, j, k) * spacing``.
-    """
-    bounds = hi - lo
-
-    def stamp(v: torch.Tensor, h: float) -> None:
-        _stamp(v, points, lo, h)
-        if cells is not None:
-            _stamp(v, cells, lo, h, cell_size)
-
-    h = grid_size / 2
-    dims = [int(round(float(b) / h)) + 1 for b in bounds]
-    vol = torch.zeros(dims, dtype=torch.float32, device=points.device)
-    stamp(vol, h)
-    for i in range(2, final_level + 1):
-        h = grid_size / 2**i
-        dims = [int(round(float(b) / h)) + 1 for b in bounds]
-        vol = F.interpolate(vol[None, None], size=dims, mode="trilinear", align_corners=True)[0, 0]
-        vol = _box_blur(vol)
-        vol[vol < 0.5] = 0.0
-        stamp(vol, h)
-    for _ in range(n_smooth):
-        vol = _box_blur(vol)
-        vol[vol < 0.5] = 0.0
-        stamp(vol, h)
-    return vol, h
-
-
 def _project_lookup(cams: Cameras, p: torch.Tensor):
     uv, z = cams.project(p)  # (C, P, 2), (C, P)
     u = torch.floor(uv[..., 0])
@@ -331,6 +277,10 @@ def build_continuum(
         candidate and final spacings, candidates kept, centres kept, particles and surface points.
     """
     cfg = ContinuumConfig.from_dict(config)
+    if cfg.centre_stamp not in ("ellipsoid", "voxel"):
+        raise ValueError(f"continuum centre_stamp must be 'ellipsoid' or 'voxel', got {cfg.centre_stamp!r}")
+    if cfg.carve_depth not in ("expected", "opaque"):
+        raise ValueError(f"continuum carve_depth must be 'expected' or 'opaque', got {cfg.carve_depth!r}")
     t_start = _time.perf_counter()
     if hasattr(cameras, "cameras") and hasattr(cameras, "images"):  # TrainingViews
         views = cameras
@@ -392,6 +342,9 @@ def build_continuum(
         out = renderer(g, cams)
         alpha = out.alpha
         depth = out.expected_depth()
+        if cfg.carve_depth == "opaque":
+            solid = torch.where(torch.sigmoid(g.opacity_logits) > cfg.opacity_threshold, 20.0, -20.0)
+            depth = renderer(g.replace(opacity_logits=solid), cams).expected_depth()
         covered = alpha > cfg.alpha_threshold
         if masks is not None:
             obj = covered & (masks[fi].to(dev) > cfg.mask_threshold)
@@ -400,9 +353,10 @@ def build_continuum(
 
         # step 2: centres
         opac = torch.sigmoid(g.opacity_logits)
-        cent = g.means[opac > cfg.opacity_threshold]
-        inside, ci, vi, ui, _ = _project_lookup(cams, cent)
-        cent = cent[(inside & covered[ci, vi, ui]).all(0)]
+        keep = (opac > cfg.opacity_threshold).nonzero().squeeze(1)
+        inside, ci, vi, ui, _ = _project_lookup(cams, g.means[keep])
+        keep = keep[(inside & covered[ci, vi, ui]).all(0)]
+        cent = g.means[keep]
         st["centres"] = int(cent.shape[0])
         if cent.shape[0] == 0:
             log.warning("continuum frame %d: no Gaussian centre is covered in every view", fi)
@@ -416,7 +370,7 @@ def build_continuum(
         pad = 0.5 * (q[1] - q[0]) + cfg.grid_size
         bulk = ((cent >= q[0] - pad) & (cent <= q[1] + pad)).all(1)
         st["outlier_centres"] = int((~bulk).sum())
-        cent = cent[bulk]
+        cent, keep = cent[bulk], keep[bulk]
         lo = cent.min(0).values - cfg.grid_size
         hi = cent.max(0).values + cfg.grid_size
         coarse = math.prod(int(round(float(b) / (cfg.grid_size / 2))) + 1 for b in (hi - lo))
@@ -450,7 +404,14 @@ def build_continuum(
         level = cfg.final_level
         while level > 1 and math.prod(int(round(float(b) / (cfg.grid_size / 2**level))) + 1 for b in (hi - lo)) > cfg.max_voxels:
             level -= 1
-        vol, h = density_volume(cent, lo, hi, cfg.grid_size, max(level, 1), cfg.n_smooth, cells=carved, cell_size=h_c)
+        ell = (g.log_scales[keep], g.quats[keep]) if cfg.centre_stamp == "ellipsoid" else None
+
+        def in_silhouettes(p: torch.Tensor) -> torch.Tensor:
+            inside, ci, vi, ui, _ = _project_lookup(cams, p)
+            return (inside & obj[ci, vi, ui]).all(0)
+
+        vol, h = density_volume(cent, lo, hi, cfg.grid_size, max(level, 1), cfg.n_smooth, cells=carved, cell_size=h_c,
+                                ellipsoids=ell, keep_vertex=in_silhouettes)
 
         # step 6: thresholds
         density = _box_blur(vol)
