@@ -21,6 +21,7 @@ truth (decades for log parameters)::
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --truth-dx 0.02 --fit-dx 0.02  # control: the truth's grid
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --boundary separate          # another ground
     python benchmarks/grid_bias.py --family neo_hookean --index 1 --shape-set spring_gaus      # the banana stand-in
+    python benchmarks/grid_bias.py --family neo_hookean --index 0 --dilate 0.01                # a body 1 cm too thick
 
 Benchmarks are never part of the test suite.
 """
@@ -52,6 +53,24 @@ def contact_summary(positions: np.ndarray) -> dict:
             "travel_m": round(float(np.hypot(c[-1, 0] - c[0, 0], c[-1, 2] - c[0, 2])), 4)}
 
 
+def dilated(particles: np.ndarray, body: np.ndarray, spacing: float, distance: float) -> np.ndarray:
+    """The body grown by a shell: ``particles`` (the body filled on a lattice of pitch
+    ``spacing``) plus the points of that lattice within ``distance`` (m) of ``body`` (the same body
+    filled much finer), as stage 0's continuum sets lattice points outside the surface."""
+    from scipy.spatial import cKDTree
+
+    k = int(np.ceil(distance / spacing)) + 1
+    r = np.arange(-k, k + 1)
+    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    keys = np.round((particles - particles[0]) / spacing).astype(np.int64)
+    keys = np.unique((keys[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    grown = particles[0] + keys * spacing
+    near = cKDTree(body).query(grown, distance_upper_bound=distance + 1e-9)[0] <= distance + 1e-9
+    old = {tuple(x) for x in np.round((particles - particles[0]) / spacing).astype(np.int64).tolist()}
+    new = np.array([g for g, key, n in zip(grown, keys.tolist(), near) if n and tuple(key) not in old]).reshape(-1, 3)
+    return np.concatenate([particles, new.astype(particles.dtype)])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--family", default="neo_hookean")
@@ -69,6 +88,9 @@ def main() -> None:
     parser.add_argument("--truth-dx", type=float, default=None, help="the truth's grid spacing, metres (default: the size preset's)")
     parser.add_argument("--boundary", default=None, choices=["sticky", "slip", "separate"],
                         help="the ground of the truth and of every rollout (default: the scene's)")
+    parser.add_argument("--dilate", type=float, default=0.0,
+                        help="grow the fitting body by this distance, metres (the lattice points within it of the "
+                             "filled body join it, each of the same volume): a stage-0 body that is too large")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
     if args.truth_dx is not None and not args.truth_dx > 0:
@@ -77,6 +99,8 @@ def main() -> None:
         parser.error(f"--fit-dx must be a positive grid spacing in metres, got {args.fit_dx}")
     if args.frames < 2:
         parser.error(f"--frames must be >= 2 (the first frame is the start), got {args.frames}")
+    if not args.dilate >= 0:
+        parser.error(f"--dilate must be a distance >= 0 in metres, got {args.dilate}")
     if not args.linear_step > 0:
         parser.error(f"--linear-step must be > 0, got {args.linear_step}")
 
@@ -106,6 +130,12 @@ def main() -> None:
                       "substeps": truth.substeps, **contact_summary(truth.particles), "seconds": round(time.perf_counter() - t, 1)}),
           flush=True)
     particles, volume = fill_mesh(mesh, args.fit_dx / 2, device=args.device)
+    n_true = len(particles)
+    if args.dilate > 0:
+        body = np.asarray(fill_mesh(mesh, args.fit_dx / 8, device=args.device)[0])
+        particles = dilated(np.asarray(particles), body, args.fit_dx / 2, args.dilate)
+        print(json.dumps({"benchmark": "grid_bias", "event": "dilated", "dilate_m": args.dilate,
+                          "volume_ratio": round(len(particles) / n_true, 3)}), flush=True)
     config = SimConfig(dx=args.fit_dx, frame_dt=1.0 / spec.fps, density=spec.density, particle_volume=volume,
                        gravity=tuple(spec.gravity), ground_height=GROUND_HEIGHT, boundary=spec.boundary,
                        auto_dt_halving=True)
