@@ -22,6 +22,7 @@ truth (decades for log parameters)::
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --boundary separate          # another ground
     python benchmarks/grid_bias.py --family neo_hookean --index 1 --shape-set spring_gaus      # the banana stand-in
     python benchmarks/grid_bias.py --family neo_hookean --index 0 --dilate 0.01                # a body 1 cm too thick
+    python benchmarks/grid_bias.py --family neo_hookean --index 0 --body RUN/continuum/particles.ply  # stage 0's body
 
 Benchmarks are never part of the test suite.
 """
@@ -88,6 +89,9 @@ def main() -> None:
     parser.add_argument("--truth-dx", type=float, default=None, help="the truth's grid spacing, metres (default: the size preset's)")
     parser.add_argument("--boundary", default=None, choices=["sticky", "slip", "separate"],
                         help="the ground of the truth and of every rollout (default: the scene's)")
+    parser.add_argument("--body", type=pathlib.Path, default=None,
+                        help="simulate this body instead of the true one: a PLY of particles on a lattice of pitch "
+                             "fit_dx / 2 in the scene's frame, e.g. a run's continuum/particles.ply")
     parser.add_argument("--dilate", type=float, default=0.0,
                         help="grow the fitting body by this distance, metres (the lattice points within it of the "
                              "filled body join it, each of the same volume): a stage-0 body that is too large")
@@ -131,6 +135,14 @@ def main() -> None:
           flush=True)
     particles, volume = fill_mesh(mesh, args.fit_dx / 2, device=args.device)
     n_true = len(particles)
+    if args.body is not None:
+        from toolkit.data.ply import read_ply_points
+
+        true_centroid = np.asarray(particles).mean(0)
+        particles = np.asarray(read_ply_points(args.body), dtype=np.float32)
+        print(json.dumps({"benchmark": "grid_bias", "event": "body", "path": str(args.body),
+                          "volume_ratio": round(len(particles) / n_true, 3),
+                          "centroid_offset_m": [round(float(x), 4) for x in particles.mean(0) - true_centroid]}), flush=True)
     if args.dilate > 0:
         body = np.asarray(fill_mesh(mesh, args.fit_dx / 8, device=args.device)[0])
         particles = dilated(np.asarray(particles), body, args.fit_dx / 2, args.dilate)
