@@ -158,6 +158,19 @@ def test_model_options_override_merges_into_the_configs():
         RunSettings(scene="/x", model_options={"gaussian_shape": "soft"}).validate()
 
 
+def test_continuum_override_reaches_the_prepare_jobs():
+    """--continuum is merged into every scene's continuum settings (a prepare field, so a stage-0
+    job with other continuum settings is another job), key by key over the config's."""
+    from toolkit.benchmark import BenchmarkSpec, SceneEntry
+    from toolkit.benchmark.plan import PREPARE_FIELDS, scene_settings
+
+    scene = SceneEntry("a", "/x", "neo_hookean")
+    over = {"centre_stamp": "ellipsoid", "carve_depth": "opaque"}
+    got = scene_settings(scene, BenchmarkSpec([scene], ["progressive"], size="small", overrides={"continuum": over}))[0]
+    plain = scene_settings(scene, BenchmarkSpec([scene], ["progressive"], size="small"))[0]
+    assert got["continuum"] == {**(plain.get("continuum") or {}), **over} and "continuum" in PREPARE_FIELDS
+
+
 def test_bad_model_options_stop_the_benchmark_before_any_work(tmp_path, capsys):
     from toolkit.cli import main
 

@@ -313,6 +313,8 @@ BAD_FLAGS = [
     (["--material-options", '{"colour": 1}'], "material", "colour"),
     (["--param", "Q=1"], "initial_params", "Q"),
     (["--downscale", "0"], "downscale", "integer >= 1"),
+    (["--continuum", '{"carve_depth": "median"}'], "continuum", "carve_depth must be 'expected' or 'opaque'"),
+    (["--continuum", '{"stamp": "voxel"}'], "continuum", "unknown continuum settings ['stamp']"),
 ]
 
 

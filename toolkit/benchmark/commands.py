@@ -111,6 +111,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--stage0-iterations", type=int, help="GIC's stage-0 schedule scaled to this many iterations")
     size.add_argument("--geometry", choices=["stage0", "oracle"], help="oracle: ground-truth geometry instead of stage 0")
     size.add_argument("--sim", type=json_arg, help='JSON SimConfig fields, e.g. \'{"substeps": 100}\' (merged)')
+    size.add_argument("--continuum", type=json_arg,
+                      help='JSON ContinuumConfig fields, e.g. \'{"centre_stamp": "ellipsoid"}\' (merged)')
     size.add_argument("--model-options", type=json_arg,
                       help='JSON module options merged into every job\'s, e.g. \'{"gaussian_shape": "deformed"}\'')
     size.add_argument("--downscale", type=int, help="integer image downscale factor")
@@ -210,7 +212,8 @@ def spec_from_args(args: argparse.Namespace):
 
         check_model_options(args.model_options)
     overrides = {}
-    for key in ("geometry", "sim", "model_options", "downscale", "n_train", "seed", "device", "renderer", "refine_grid"):
+    for key in ("geometry", "sim", "continuum", "model_options", "downscale", "n_train", "seed", "device", "renderer",
+                "refine_grid"):
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v

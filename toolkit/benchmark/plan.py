@@ -368,7 +368,7 @@ def config_for(dataset: str, material: str) -> Optional[Path]:
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
-        if k in ("sim", "model_options") and isinstance(v, dict):
+        if k in ("sim", "continuum", "model_options") and isinstance(v, dict):
             out[k] = {**(out.get(k) or {}), **v}
         else:
             out[k] = copy.deepcopy(v)

@@ -72,6 +72,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              f"(default: {d['geometry']})")
     parser.add_argument("--sim", type=json_arg,
                         help='JSON SimConfig fields, e.g. \'{"dx": 0.02, "substeps": 100}\' (default: SimConfig defaults)')
+    parser.add_argument("--continuum", type=json_arg,
+                        help='JSON ContinuumConfig fields, e.g. \'{"centre_stamp": "ellipsoid", "carve_depth": "opaque"}\' '
+                             "(default: GIC's procedure on a lattice at sim.dx / 2)")
     parser.add_argument("--device", help=f"auto, cpu, cuda or cuda:N (default: {d['device']})")
     parser.add_argument("--refine-grid", action=argparse.BooleanOptionalAction, default=None,
                         help="when the grid check finds the estimate grid-dependent, fit again at half the grid spacing "
@@ -121,6 +124,7 @@ def settings_from_args(args: argparse.Namespace, command: str = "run"):
         "scene": args.scene, "out": args.out, "material": args.material, "material_options": args.material_options,
         "curriculum": args.curriculum, "curriculum_options": args.curriculum_options, "n_train": args.n_train,
         "downscale": args.downscale, "geometry": args.geometry, "sim": args.sim, "device": args.device, "seed": args.seed,
+        "continuum": getattr(args, "continuum", None),
         "threads": args.threads, "refine_grid": getattr(args, "refine_grid", None),
     }
     if args.cameras:

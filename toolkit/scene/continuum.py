@@ -122,6 +122,12 @@ class ContinuumConfig(DictSettings):
     max_voxels: int = 1 << 24
     chunk: int = 1 << 20
 
+    def __post_init__(self) -> None:
+        if self.centre_stamp not in ("ellipsoid", "voxel"):
+            raise ValueError(f"continuum centre_stamp must be 'ellipsoid' or 'voxel', got {self.centre_stamp!r}")
+        if self.carve_depth not in ("expected", "opaque"):
+            raise ValueError(f"continuum carve_depth must be 'expected' or 'opaque', got {self.carve_depth!r}")
+
 
 
 @dataclass
@@ -277,10 +283,6 @@ def build_continuum(
         candidate and final spacings, candidates kept, centres kept, particles and surface points.
     """
     cfg = ContinuumConfig.from_dict(config)
-    if cfg.centre_stamp not in ("ellipsoid", "voxel"):
-        raise ValueError(f"continuum centre_stamp must be 'ellipsoid' or 'voxel', got {cfg.centre_stamp!r}")
-    if cfg.carve_depth not in ("expected", "opaque"):
-        raise ValueError(f"continuum carve_depth must be 'expected' or 'opaque', got {cfg.carve_depth!r}")
     t_start = _time.perf_counter()
     if hasattr(cameras, "cameras") and hasattr(cameras, "images"):  # TrainingViews
         views = cameras
