@@ -11,7 +11,8 @@ record was not kept (spacing ``--spacing``), or ``--runs``: run folders of gener
 with a finished stage 0 (``projo4d stage0 SUITE/FAMILY/INDEX --out RUN``), whose continuum is built
 again under each ``--variant`` (``KEY=VALUE`` settings of
 :class:`~toolkit.scene.continuum.ContinuumConfig` joined by ``+``, on the pipeline's lattice).
-One JSON line per scene (and variant)::
+One JSON line per scene (and variant); with ``--runs`` also the body's centroid offset from the
+true body's and that of its lowest point (y up, metres)::
 
     python benchmarks/stage0_volume.py docs/results/paper_size/round8/stage0/*.json
     python benchmarks/stage0_volume.py --shape-set spring_gaus --count neo_hookean/006=4188
@@ -107,13 +108,18 @@ def rebuild(args: argparse.Namespace, out) -> None:
             with torch.no_grad():
                 cont = build_continuum(module, views, config=ContinuumConfig.from_dict(cfg), device="cpu", frames=[0])
             if cont.spacing not in true_counts:
-                true_counts[cont.spacing] = len(fill_mesh(build_object(spec), cont.spacing, device="cpu")[0])
-            n_true = true_counts[cont.spacing]
+                true_counts[cont.spacing] = fill_mesh(build_object(spec), cont.spacing, device="cpu")[0]
+            true_pts = true_counts[cont.spacing]
+            n_true = len(true_pts)
+            body = cont.particles.numpy()
             print(json.dumps({"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape,
                               "variant": variant, "spacing_m": cont.spacing, "true_particles": n_true,
                               "stage0_particles": int(cont.particles.shape[0]),
                               "volume_ratio": round(cont.particles.shape[0] / n_true, 3),
-                              "carve_ratio": round(cont.stats["frames"][0]["carved"] / n_true, 3), "source": str(run)}),
+                              "carve_ratio": round(cont.stats["frames"][0]["carved"] / n_true, 3),
+                              "centroid_offset_m": [round(float(x), 4) for x in body.mean(0) - true_pts.mean(0)],
+                              "lowest_point_offset_m": round(float(body[:, 1].min() - true_pts[:, 1].min()), 4),
+                              "source": str(run)}),
                   file=out, flush=True)
 
 
