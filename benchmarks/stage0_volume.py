@@ -10,12 +10,15 @@ Inputs are stage-0 records as the benchmark write-ups keep them (``FAMILY_INDEX.
 record was not kept (spacing ``--spacing``), or ``--runs``: run folders of generated suite scenes
 with a finished stage 0 (``projo4d stage0 SUITE/FAMILY/INDEX --out RUN``), whose continuum is built
 again under each ``--variant`` (``KEY=VALUE`` settings of
-:class:`~toolkit.scene.continuum.ContinuumConfig` joined by ``+``, on the pipeline's lattice).
-One JSON line per scene (and variant); with ``--runs`` also the body's centroid offset from the
-true body's and that of its lowest point (y up, metres)::
+:class:`~toolkit.scene.continuum.ContinuumConfig` joined by ``+``, on the pipeline's lattice), or
+``--bodies FAMILY/INDEX=PLY``: continua already built (a benchmark scene's
+``continuum/particles.ply``). One JSON line per scene (and variant); with ``--runs`` and
+``--bodies`` also the body's centroid offset from the true body's and that of its lowest point
+(y up, metres)::
 
     python benchmarks/stage0_volume.py docs/results/paper_size/round8/stage0/*.json
     python benchmarks/stage0_volume.py --shape-set spring_gaus --count neo_hookean/006=4188
+    python benchmarks/stage0_volume.py --shape-set spring_gaus --bodies neo_hookean/006=BENCH/scenes/neo_hookean/006/cams3/continuum/particles.ply
     python benchmarks/stage0_volume.py --size small --runs runs/nh000 runs/sand000 \
         --variant centre_stamp=voxel+carve_depth=expected centre_stamp=ellipsoid+carve_depth=opaque
 
@@ -43,9 +46,22 @@ def main() -> None:
     parser.add_argument("--size", default="full", choices=["full", "small"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--runs", nargs="*", default=[], type=pathlib.Path, help="run folders with a finished stage 0")
+    parser.add_argument("--bodies", nargs="*", default=[], metavar="FAMILY/INDEX=PLY",
+                        help="continua already built (a run's or a benchmark scene's continuum/particles.ply, lattice "
+                             "pitch --spacing): volume and placement against the true body")
     parser.add_argument("--variant", nargs="*", default=["centre_stamp=voxel+carve_depth=expected"],
                         help="continuum settings for --runs, KEY=VALUE joined by +")
     args = parser.parse_args()
+    if args.bodies:
+        for item in args.bodies:
+            name, sep, ply = item.partition("=")
+            family, _, index = name.partition("/")
+            if not (sep and index.isdigit() and pathlib.Path(ply).is_file()):
+                parser.error(f"--bodies expects FAMILY/INDEX=PLY with an existing PLY file, got {item!r}")
+            with contextlib.redirect_stdout(sys.stderr):  # Warp's messages: stdout keeps the JSON lines
+                row = placement(family, int(index), pathlib.Path(ply), args)
+            print(json.dumps(row), flush=True)
+        return
     if args.runs:
         out = sys.stdout
         with contextlib.redirect_stdout(sys.stderr):  # Warp's and Lightning's messages: stdout keeps the JSON lines
@@ -69,13 +85,32 @@ def main() -> None:
         except ValueError:
             parser.error(f"--count expects FAMILY/INDEX=N (e.g. neo_hookean/006=4188), got {item!r}")
     if not scenes:
-        parser.error("give stage-0 records or --count")
+        parser.error("give stage-0 records, --count, --runs or --bodies")
     for family, index, n_stage0, spacing, source in scenes:
         spec = sample_scene_spec(family, index, args.seed, args.size, "cpu", shape_set=args.shape_set)
         particles, _ = fill_mesh(build_object(spec), spacing, device="cpu")
         print(json.dumps({"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape,
                           "spacing_m": spacing, "true_particles": len(particles), "stage0_particles": n_stage0,
                           "volume_ratio": round(n_stage0 / len(particles), 3), "source": source}), flush=True)
+
+
+def placement(family: str, index: int, ply: pathlib.Path, args: argparse.Namespace) -> dict:
+    """Volume ratio, centroid and lowest-point offsets (m, y up) of a continuum PLY against the
+    true body of the suite scene ``family/index`` filled at ``args.spacing``."""
+    import numpy as np
+
+    from toolkit.data.ply import read_ply_points
+    from toolkit.synthetic.filling import fill_mesh
+    from toolkit.synthetic.suite import sample_scene_spec
+    from toolkit.synthetic.truth import build_object
+
+    spec = sample_scene_spec(family, index, args.seed, args.size, "cpu", shape_set=args.shape_set)
+    true_pts = np.asarray(fill_mesh(build_object(spec), args.spacing, device="cpu")[0])
+    body = np.asarray(read_ply_points(ply))
+    return {"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape, "spacing_m": args.spacing,
+            "true_particles": len(true_pts), "stage0_particles": len(body), "volume_ratio": round(len(body) / len(true_pts), 3),
+            "centroid_offset_m": [round(float(x), 4) for x in body.mean(0) - true_pts.mean(0)],
+            "lowest_point_offset_m": round(float(body[:, 1].min() - true_pts[:, 1].min()), 4), "source": str(ply)}
 
 
 def rebuild(args: argparse.Namespace, out) -> None:
