@@ -103,6 +103,8 @@ def main() -> None:
         parser.error(f"--fit-dx must be a positive grid spacing in metres, got {args.fit_dx}")
     if args.frames < 2:
         parser.error(f"--frames must be >= 2 (the first frame is the start), got {args.frames}")
+    if args.body is not None and not args.body.is_file():
+        parser.error(f"--body: {args.body} is not a file (expected a PLY of particles, e.g. RUN/continuum/particles.ply)")
     if not args.dilate >= 0:
         parser.error(f"--dilate must be a distance >= 0 in metres, got {args.dilate}")
     if not args.linear_step > 0:

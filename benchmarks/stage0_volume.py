@@ -94,6 +94,12 @@ def main() -> None:
                           "volume_ratio": round(n_stage0 / len(particles), 3), "source": source}), flush=True)
 
 
+def offsets(body, true_pts) -> dict:
+    """Where a body (N, 3) sits against the true body's particles (M, 3), metres, y up."""
+    return {"centroid_offset_m": [round(float(x), 4) for x in body.mean(0) - true_pts.mean(0)],
+            "lowest_point_offset_m": round(float(body[:, 1].min() - true_pts[:, 1].min()), 4)}
+
+
 def placement(family: str, index: int, ply: pathlib.Path, args: argparse.Namespace) -> dict:
     """Volume ratio, centroid and lowest-point offsets (m, y up) of a continuum PLY against the
     true body of the suite scene ``family/index`` filled at ``args.spacing``."""
@@ -109,12 +115,12 @@ def placement(family: str, index: int, ply: pathlib.Path, args: argparse.Namespa
     body = np.asarray(read_ply_points(ply))
     return {"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape, "spacing_m": args.spacing,
             "true_particles": len(true_pts), "stage0_particles": len(body), "volume_ratio": round(len(body) / len(true_pts), 3),
-            "centroid_offset_m": [round(float(x), 4) for x in body.mean(0) - true_pts.mean(0)],
-            "lowest_point_offset_m": round(float(body[:, 1].min() - true_pts[:, 1].min()), 4), "source": str(ply)}
+            **offsets(body, true_pts), "source": str(ply)}
 
 
 def rebuild(args: argparse.Namespace, out) -> None:
     """The continuum of each run's stage-0 model, built again under each variant."""
+    import numpy as np
     import torch
 
     from toolkit.data import load_scene
@@ -152,9 +158,7 @@ def rebuild(args: argparse.Namespace, out) -> None:
                               "stage0_particles": int(cont.particles.shape[0]),
                               "volume_ratio": round(cont.particles.shape[0] / n_true, 3),
                               "carve_ratio": round(cont.stats["frames"][0]["carved"] / n_true, 3),
-                              "centroid_offset_m": [round(float(x), 4) for x in body.mean(0) - true_pts.mean(0)],
-                              "lowest_point_offset_m": round(float(body[:, 1].min() - true_pts[:, 1].min()), 4),
-                              "source": str(run)}),
+                              **offsets(body, np.asarray(true_pts)), "source": str(run)}),
                   file=out, flush=True)
 
 

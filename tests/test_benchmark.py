@@ -181,6 +181,15 @@ def test_bad_model_options_stop_the_benchmark_before_any_work(tmp_path, capsys):
     assert stop.value.code == 2
     assert "model_options.gaussian_shape = 'soft'" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+    for bad, said in (('{"carve_depth": "median"}', "carve_depth must be 'expected' or 'opaque', got 'median'"),
+                      ('{"stamp": 1}', "unknown continuum settings ['stamp']")):
+        args[-2:] = ["--continuum", bad]
+        with pytest.raises(SystemExit) as stop:
+            main(args)
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert "--continuum" in err and said in err, err
+        assert list(tmp_path.iterdir()) == []
 
 
 def test_only_keeps_the_named_scenes_and_refuses_unknown_names(tmp_path, capsys):

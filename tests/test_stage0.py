@@ -398,7 +398,8 @@ def test_opaque_carve_depth_keeps_the_body_of_semi_transparent_gaussians():
 def test_ellipsoid_vertices_match_a_slow_twin():
     """The vectorized 1-sigma ellipsoid sampling against a per-Gaussian, per-vertex Python loop,
     on rotated anisotropic Gaussians of radius 0 to 3 voxels."""
-    from toolkit.scene.continuum_stamp import _rotmats, ellipsoid_vertices
+    from renderers.torch_reference import quat_to_rotmat
+    from toolkit.scene.continuum_stamp import ellipsoid_vertices
 
     g = torch.Generator().manual_seed(3)
     n, h = 40, 0.01
@@ -409,7 +410,7 @@ def test_ellipsoid_vertices_match_a_slow_twin():
     lo = torch.tensor([-0.05, -0.05, -0.05])
     fast = {tuple(v) for v in ellipsoid_vertices(means, log_scales, quats, lo, h).tolist()}
     slow = set()
-    for m, ls, R in zip(means.double().tolist(), log_scales.double().exp().tolist(), _rotmats(quats.double()).tolist()):
+    for m, ls, R in zip(means.double().tolist(), log_scales.double().exp().tolist(), quat_to_rotmat(quats.double()).tolist()):
         k = math.ceil(max(ls) / h)
         c = [round((m[a] - float(lo[a])) / h) for a in range(3)]
         for i in range(c[0] - k, c[0] + k + 1):
@@ -421,6 +422,20 @@ def test_ellipsoid_vertices_match_a_slow_twin():
     assert len(slow) > 100
     # float32 against float64: only vertices within rounding of an ellipsoid's boundary may differ
     assert len(fast ^ slow) <= 0.01 * len(slow), (len(fast ^ slow), len(slow))
+
+
+def test_mask_bounding_box_needs_two_views_and_says_so():
+    """The sphere's masks bound it from 12 views (within a voxel of the search); from one camera
+    there is no point where the views meet, which is a clear error, not a division by zero."""
+    from toolkit.scene.initialization import mask_bounding_box
+
+    centre, radius = (0.0, 0.3, 0.0), 0.1
+    cams = _ring_cameras(centre)
+    masks = _sphere_masks(cams, centre, radius)
+    lo, hi = mask_bounding_box(cams, masks)
+    assert torch.allclose((lo + hi) / 2, torch.tensor(centre), atol=0.02) and float((hi - lo).min()) >= 2 * radius
+    with pytest.raises(ValueError, match="at least 2 cameras"):
+        mask_bounding_box(cams[0:1], masks[0:1])
 
 
 def test_continuum_survives_degenerate_gaussians():

@@ -86,8 +86,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--suite-seed", type=int, default=0, help="seed of a generated suite (default 0)")
     src.add_argument("--suite-overrides", type=json_arg, help="JSON SceneSpec fields for every generated scene")
     src.add_argument("--shape-set", choices=list(SHAPE_SETS), default="pac_nerf",
-                     help="shapes of generated scenes: pac_nerf (default, a random shape each) or spring_gaus (apple, "
-                          "banana, chess, cream, cross, paste, torus in turn)")
+                     help="shapes of generated scenes: pac_nerf (default, a random shape each) or spring_gaus "
+                          f"({', '.join(SHAPE_SETS['spring_gaus'])} in turn)")
     src.add_argument("--material", help="material of --scenes (default: each scene's recorded ground truth)")
     src.add_argument("--dataset", help="config prefix: the material's configs/<dataset>_*.yaml (default synthetic for "
                                        "suites, pacnerf for --scenes)")
@@ -211,6 +211,13 @@ def spec_from_args(args: argparse.Namespace):
         from toolkit.run_config import check_model_options
 
         check_model_options(args.model_options)
+    if args.continuum is not None:
+        from toolkit.scene.continuum import ContinuumConfig
+
+        try:
+            ContinuumConfig.from_dict(args.continuum)
+        except (TypeError, ValueError) as err:
+            raise BenchmarkError(f"--continuum {json.dumps(args.continuum)}: {err}") from None
     overrides = {}
     for key in ("geometry", "sim", "continuum", "model_options", "downscale", "n_train", "seed", "device", "renderer",
                 "refine_grid"):

@@ -16,23 +16,14 @@ better on real ones at small size.
 
 from __future__ import annotations
 
-
 from typing import Callable, Optional
 
 import torch
 import torch.nn.functional as F
 
+from renderers.torch_reference import quat_to_rotmat
+
 __all__ = ["box_blur", "density_volume", "ellipsoid_vertices", "stamp_nearest"]
-
-
-def _rotmats(quats: torch.Tensor) -> torch.Tensor:
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(*q.shape[:-1], 3, 3)
 
 
 def ellipsoid_vertices(means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor, lo: torch.Tensor, h: float,
@@ -58,7 +49,7 @@ def ellipsoid_vertices(means: torch.Tensor, log_scales: torch.Tensor, quats: tor
         return torch.zeros(0, 3, dtype=torch.long, device=dev)
     sigma = log_scales.exp()
     inv_sigma = 1.0 / sigma.clamp_min(1e-12)
-    rot = _rotmats(quats)
+    rot = quat_to_rotmat(quats)
     radius = torch.ceil(sigma.max(-1).values / h).clamp(0, max_radius_voxels).long()
     found = []
     for k in torch.unique(radius).tolist():

@@ -167,6 +167,11 @@ def mask_bounding_box(
         dist = (cameras.centers.to(dev) - focus).norm(dim=-1)
         tan_half = torch.maximum(0.5 * cameras.width / cameras.fx, 0.5 * cameras.height / cameras.fy).to(dev)
         search_half_size = float((dist * tan_half).max()) * 1.2
+    if not search_half_size > 0:  # one camera (or parallel axes): no point where the views meet
+        raise ValueError(
+            f"the {len(cameras)} camera(s) give no point where their optical axes meet, so the masks cannot "
+            "bound the object: stage 0 needs at least 2 cameras looking at it from different directions"
+        )
     lo, hi = focus - search_half_size, focus + search_half_size
     for _ in range(2):
         spacing = float((hi - lo).max()) / resolution

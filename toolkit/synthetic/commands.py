@@ -144,8 +144,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                    help="material families (default: all five)")
     s.add_argument("--per-family", type=int, default=2, help="scenes per family (default 2)")
     s.add_argument("--shape-set", choices=list(SHAPE_SETS), default="pac_nerf",
-                   help="pac_nerf (default): a random shape per scene; spring_gaus: apple, banana, chess, cream, "
-                        "cross, paste, torus in turn (stand-ins for the Spring-Gaus objects)")
+                   help="pac_nerf (default): a random shape per scene; spring_gaus: "
+                        f"{', '.join(SHAPE_SETS['spring_gaus'])} in turn (stand-ins for the Spring-Gaus objects)")
     _common(s, SIZE_PRESETS)
     _configure_variant(sub)
 
