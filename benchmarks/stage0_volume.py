@@ -45,12 +45,17 @@ def main() -> None:
     parser.add_argument("--shape-set", default="pac_nerf", help="the suite's shape set of every scene given (one set per call)")
     parser.add_argument("--size", default="full", choices=["full", "small"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default=None, help="where --runs rebuild the continua (default: the stage-0 model's)")
     parser.add_argument("--runs", nargs="*", default=[], type=pathlib.Path, help="run folders with a finished stage 0")
     parser.add_argument("--bodies", nargs="*", default=[], metavar="FAMILY/INDEX=PLY",
                         help="continua already built (a run's or a benchmark scene's continuum/particles.ply, lattice "
                              "pitch --spacing): volume and placement against the true body")
     parser.add_argument("--variant", nargs="*", default=["centre_stamp=voxel+carve_depth=expected"],
                         help="continuum settings for --runs, KEY=VALUE joined by +")
+    parser.add_argument("--surfaces", action="store_true",
+                        help="with --runs: build every training frame and report, per frame, the share of surface points "
+                             "below the ground, the lowest point against the truth's and the mean distance (mm) from a "
+                             "surface point to the nearest true particle (the geometric loss's targets)")
     args = parser.parse_args()
     if args.bodies:
         for item in args.bodies:
@@ -135,7 +140,10 @@ def rebuild(args: argparse.Namespace, out) -> None:
         settings = RunSettings(**json.loads((run / "settings.json").read_text()))
         scene_dir = pathlib.Path(settings.scene)
         family, index = scene_dir.parent.name, int(scene_dir.name)
-        module, views = fit_stage0_step(settings, load_scene(scene_dir), run, {})  # a finished stage 0 is loaded
+        scene = load_scene(scene_dir)
+        module, views = fit_stage0_step(settings, scene, run, {})  # a finished stage 0 is loaded
+        coverage_file = run / "stage0" / "coverage.json"
+        lost = json.loads(coverage_file.read_text()).get("lost_frames", []) if coverage_file.is_file() else []
         spec = sample_scene_spec(family, index, args.seed, args.size, "cpu", shape_set=args.shape_set)
         dx = float(settings.sim.get("dx", 0.02))
         true_counts: dict = {}
@@ -145,21 +153,57 @@ def rebuild(args: argparse.Namespace, out) -> None:
                 key, _, value = part.partition("=")
                 if key not in fields:
                     raise SystemExit(f"--variant: {key!r} is not a continuum setting ({', '.join(fields)})")
-                cfg[key] = type(fields[key])(value)
+                if isinstance(fields[key], bool):
+                    if value not in ("true", "false"):
+                        raise SystemExit(f"--variant: {key} takes true or false, got {value!r}")
+                    cfg[key] = value == "true"
+                else:
+                    cfg[key] = type(fields[key])(value)
             with torch.no_grad():
-                cont = build_continuum(module, views, config=ContinuumConfig.from_dict(cfg), device="cpu", frames=[0])
+                cont = build_continuum(module, views, config=ContinuumConfig.from_dict(cfg), device=args.device,
+                                       frames=None if args.surfaces else [0],
+                                       ground=(scene.world.ground_point, scene.world.ground_normal), lost_frames=lost)
             if cont.spacing not in true_counts:
                 true_counts[cont.spacing] = fill_mesh(build_object(spec), cont.spacing, device="cpu")[0]
             true_pts = true_counts[cont.spacing]
             n_true = len(true_pts)
             body = cont.particles.numpy()
+            carve = cont.stats["frames"][0].get("ground_carve")
             print(json.dumps({"benchmark": "stage0_volume", "scene": f"{family}/{index:03d}", "shape": spec.shape,
                               "variant": variant, "spacing_m": cont.spacing, "true_particles": n_true,
                               "stage0_particles": int(cont.particles.shape[0]),
                               "volume_ratio": round(cont.particles.shape[0] / n_true, 3),
                               "carve_ratio": round(cont.stats["frames"][0]["carved"] / n_true, 3),
-                              **offsets(body, np.asarray(true_pts)), "source": str(run)}),
+                              "ground_carved": carve.get("removed") if isinstance(carve, dict) else carve,
+                              **offsets(body, np.asarray(true_pts)),
+                              **(surface_quality(cont, scene_dir, scene.world) if args.surfaces else {}),
+                              "source": str(run)}),
                   file=out, flush=True)
+
+
+def surface_quality(cont, scene_dir: pathlib.Path, world) -> dict:
+    """Per frame: share of surface points more than half a voxel below the ground, lowest surface
+    point minus the true cloud's lowest (m, along the ground normal), and the mean distance (mm)
+    from a surface point to the nearest point of the frame's ground-truth cloud."""
+    import numpy as np
+    import torch
+
+    from toolkit.data.ply import read_ply_points
+
+    below, lowest, dist = [], [], []
+    for i, surf in enumerate(cont.surfaces):
+        truth = np.asarray(read_ply_points(scene_dir / "gt_points" / f"frame_{i:03d}.ply"))
+        pts = surf.numpy()
+        if len(pts) == 0:
+            below.append(None), lowest.append(None), dist.append(None)
+            continue
+        h, h_true = world.height(pts), world.height(truth)
+        below.append(round(float(np.mean(h < -cont.spacing / 2)), 3))
+        lowest.append(round(float(h.min() - h_true.min()), 4))
+        p, t = torch.as_tensor(pts, dtype=torch.float32), torch.as_tensor(truth, dtype=torch.float32)
+        d = torch.cat([torch.cdist(p[k:k + 2048], t).min(1).values for k in range(0, len(p), 2048)])
+        dist.append(round(float(d.mean()) * 1e3, 2))
+    return {"surface_below_ground": below, "surface_lowest_offset_m": lowest, "surface_to_truth_mm": dist}
 
 
 if __name__ == "__main__":

@@ -267,7 +267,9 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
     dx = float(s.sim.get("dx", 0.02))
     cfg = {"grid_size": 8 * dx / 2, "candidate_level": 3, "final_level": 3, **s.continuum}
     with torch.no_grad():
-        cont = build_continuum(module, views.to(device), config=ContinuumConfig.from_dict(cfg), device=device)
+        cont = build_continuum(module, views.to(device), config=ContinuumConfig.from_dict(cfg), device=device,
+                               ground=(scene.world.ground_point, scene.world.ground_normal),
+                               lost_frames=(coverage or {}).get("lost_frames", []))
     cont.save(run / "continuum")
     timings["continuum_s"] = time.perf_counter() - t
     log.info(cont.summary())

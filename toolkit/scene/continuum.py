@@ -30,6 +30,10 @@ Procedure (GIC ``train_dynamic.py::prepare_gt``; facts, re-implemented), for eve
    (GIC PAC-NeRF: 0.5 and 0.7). Interior voxel centres of the first frame are the simulation
    particles (each of volume ``spacing^3``); surface voxel centres of every frame are the
    pseudo-ground-truth point sets of the geometric loss.
+7. **Ground** (not in GIC; ``ground_clip``, on when a ground plane is given): nothing below the
+   dataset's ground is object, in any frame, and the first frame's particles carried by the
+   Gaussians' motion to a frame where the object lies on the ground must stay above it
+   (:mod:`toolkit.scene.continuum_ground`): the downward-looking views never carve the underside.
 
 The surfaces come from the fitted model only; the dataset's ground-truth clouds are for
 evaluation and never enter here.
@@ -57,6 +61,7 @@ from renderers import get_renderer
 from renderers.base import Gaussians, Renderer
 from toolkit.cameras import Cameras
 from toolkit.scene.continuum_stamp import box_blur as _box_blur
+from toolkit.scene.continuum_ground import Ground, above_ground, carve_first_frame
 from toolkit.scene.continuum_stamp import density_volume
 from toolkit.settings import DictSettings
 
@@ -102,6 +107,12 @@ class ContinuumConfig(DictSettings):
         max_candidates: Cap on the candidate lattice size (coarsened by 2 until below).
         max_voxels: Cap on the final volume size (final level lowered until below).
         chunk: Points per projection batch.
+        ground_clip: With a ground plane given to :func:`build_continuum`, nothing below it is
+            object: per frame, lattice points and centres below the plane are dropped, and the
+            first frame's particles are carried through the clip by their nearest Gaussians and
+            dropped where a frame puts them more than one spacing below it
+            (:mod:`toolkit.scene.continuum_ground`; not in GIC, whose downward-looking views
+            leave the underside of the visual hull uncarved). False: GIC's procedure.
     """
 
     grid_size: float = 0.1
@@ -121,12 +132,15 @@ class ContinuumConfig(DictSettings):
     max_candidates: int = 1 << 23
     max_voxels: int = 1 << 24
     chunk: int = 1 << 20
+    ground_clip: bool = True
 
     def __post_init__(self) -> None:
         if self.centre_stamp not in ("ellipsoid", "voxel"):
             raise ValueError(f"continuum centre_stamp must be 'ellipsoid' or 'voxel', got {self.centre_stamp!r}")
         if self.carve_depth not in ("expected", "opaque"):
             raise ValueError(f"continuum carve_depth must be 'expected' or 'opaque', got {self.carve_depth!r}")
+        if not isinstance(self.ground_clip, bool):
+            raise ValueError(f"continuum ground_clip must be true or false, got {self.ground_clip!r}")
 
 
 
@@ -188,6 +202,9 @@ def why_empty(st: dict, config: dict) -> str:
     if st.get("gaussians", 1) == 0:
         return (f"all {st.get('dropped_gaussians', 0)} Gaussians were degenerate (non-finite, or a standard deviation "
                 f"above max_scale)")
+    if st.get("centres", 1) == 0 and st.get("centres_below_ground", 0) > 0:
+        return (f"all {st['centres_below_ground']} Gaussian centres covered in every view lie below the dataset's ground "
+                f"plane: check the scene's world (ground_point, ground_normal), or set continuum ground_clip false")
     if st.get("centres", 1) == 0:
         return (f"no Gaussian centre with opacity above {config.get('opacity_threshold', 0.01)} projects onto a rendered "
                 f"pixel in every training view: the views disagree on where the object is")
@@ -203,6 +220,12 @@ def why_empty(st: dict, config: dict) -> str:
 def sanitize_gaussians(g: Gaussians, max_scale: float, min_log_scale: float = -20.0) -> tuple[Gaussians, int]:
     """Drop Gaussians that are non-finite, have a zero quaternion or a standard deviation above
     ``max_scale`` (metres); clamp log-scales from below. Returns ``(kept, n_dropped)``."""
+    kept, idx = _sanitize(g, max_scale, min_log_scale)
+    return kept, int(len(g) - idx.numel())
+
+
+def _sanitize(g: Gaussians, max_scale: float, min_log_scale: float) -> tuple[Gaussians, torch.Tensor]:
+    """:func:`sanitize_gaussians`, returning the kept Gaussians' indices in ``g``."""
     rows = lambda t: t.reshape(t.shape[0], -1)  # noqa: E731
     ok = torch.ones(len(g), dtype=torch.bool, device=g.means.device)
     for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.colors, g.sh):
@@ -220,7 +243,7 @@ def sanitize_gaussians(g: Gaussians, max_scale: float, min_log_scale: float = -2
         colors=None if g.colors is None else g.colors[idx],
         sh=None if g.sh is None else g.sh[idx],
     )
-    return kept, int(len(g) - idx.numel())
+    return kept, idx
 
 
 def _project_lookup(cams: Cameras, p: torch.Tensor):
@@ -260,6 +283,8 @@ def build_continuum(
     config: ContinuumConfig | dict | None = None,
     renderer: Optional[str | Renderer] = None,
     device: Optional[torch.device | str] = None,
+    ground: Optional[Ground] = None,
+    lost_frames: Sequence[int] = (),
 ) -> Continuum:
     """Build simulation particles (first frame) and surface points (every frame) from Gaussians.
 
@@ -277,6 +302,13 @@ def build_continuum(
         config: :class:`ContinuumConfig` or a dict of its fields.
         renderer: Renderer name or instance (default: the model's, else ``"warp"``/``"torch"``).
         device: Where to compute (default: the Gaussians' device).
+        ground: ``(point, normal)`` of the ground plane in the cameras' frame (metres; the normal
+            points into free space), e.g. the dataset's :class:`toolkit.data.world.World`. With
+            ``config.ground_clip`` (default) nothing below it becomes object, and the first
+            frame's particles are carved by every frame of the clip
+            (:mod:`toolkit.scene.continuum_ground`). None: no ground (GIC's procedure).
+        lost_frames: Frames (indices into the T frames) in which stage 0 lost the object; their
+            Gaussians do not carve the first frame's particles.
 
     Returns:
         :class:`Continuum`; ``stats`` reports per frame the Gaussians used and dropped, the
@@ -321,6 +353,7 @@ def build_continuum(
         renderer = get_renderer(renderer)
     max_scale = cfg.max_scale if cfg.max_scale is not None else cfg.grid_size
 
+    floor = ground if cfg.ground_clip else None
     particles = torch.zeros(0, 3)
     spacing = cfg.grid_size / 2**cfg.final_level
     surfaces: list[torch.Tensor] = []
@@ -330,7 +363,8 @@ def build_continuum(
         t = time_list[fi]
         g_raw = _frame_gaussians(model, fi, t)
         dev = torch.device(device) if device is not None else g_raw.means.device
-        g, n_dropped = sanitize_gaussians(g_raw.detach().to(dev), max_scale, cfg.min_log_scale)
+        g, usable = _sanitize(g_raw.detach().to(dev), max_scale, cfg.min_log_scale)
+        n_dropped = len(g_raw) - usable.numel()
         dropped_total += n_dropped
         cams = cameras.to(dev)
         st: dict = {"frame": fi, "time": t, "gaussians": len(g), "dropped_gaussians": n_dropped}
@@ -358,6 +392,9 @@ def build_continuum(
         keep = (opac > cfg.opacity_threshold).nonzero().squeeze(1)
         inside, ci, vi, ui, _ = _project_lookup(cams, g.means[keep])
         keep = keep[(inside & covered[ci, vi, ui]).all(0)]
+        up = above_ground(g.means[keep], floor)
+        st["centres_below_ground"] = int((~up).sum())
+        keep = keep[up]
         cent = g.means[keep]
         st["centres"] = int(cent.shape[0])
         if cent.shape[0] == 0:
@@ -398,7 +435,8 @@ def build_continuum(
             p = torch.cat([xs[:, None, None].expand(-1, yz.shape[0], 1), yz[None].expand(xs.shape[0], -1, -1)], -1).reshape(-1, 3)
             inside, ci, vi, ui, z = _project_lookup(cams, p)
             ok = inside & obj[ci, vi, ui] & (z > depth[ci, vi, ui] + cfg.depth_margin)
-            kept.append(p[ok.all(0)])
+            ok = ok.all(0) & above_ground(p, floor)
+            kept.append(p[ok])
         carved = torch.cat(kept) if kept else torch.zeros(0, 3, device=dev)
         st.update(candidate_spacing=h_c, candidates=int(math.prod(dims_c)), carved=int(carved.shape[0]))
 
@@ -420,12 +458,19 @@ def build_continuum(
         interior = density >= cfg.density_min
         smooth2 = _box_blur(density)
         surface = (smooth2 > 0) & (smooth2 < cfg.density_max) & interior
-        surf_pts = (surface.nonzero().float() * h + lo).float().cpu()
+        surf_pts = surface.nonzero().float() * h + lo
+        surf_pts = surf_pts[above_ground(surf_pts, floor, slack=h / 2)].float().cpu()
         surfaces.append(surf_pts)
         st.update(spacing=h, final_level=level, surface_points=int(surf_pts.shape[0]), interior_voxels=int(interior.sum()))
         if order == 0:
-            particles = (interior.nonzero().float() * h + lo).float().cpu()
+            inner = interior.nonzero().float() * h + lo
+            inner = inner[above_ground(inner, floor, slack=h / 2)]
             spacing = h
+            if floor is not None and inner.shape[0]:
+                others = [f for f in range(len(time_list)) if f != fi and f not in set(int(x) for x in lost_frames)]
+                inner, st["ground_carve"] = carve_first_frame(inner, g_raw, usable[keep], others, floor, h,
+                                                              lambda f: _frame_gaussians(model, f, time_list[f]))
+            particles = inner.float().cpu()
             st["particles"] = int(particles.shape[0])
         frame_stats.append(st)
         log.info(
@@ -447,3 +492,4 @@ def build_continuum(
     result = Continuum(particles=particles, particle_volume=spacing**3, surfaces=surfaces, spacing=spacing, stats=stats)
     log.info(result.summary())
     return result
+

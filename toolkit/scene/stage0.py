@@ -8,6 +8,10 @@ rendered from every fitting camera in one renderer call:
       + λ_s mean(scales)   after the warm-up           GIC ``--reg_scale``: λ_s = 10
       + λ_a L_anchor       after the warm-up           silhouette anchor (not in GIC), λ_a = 1 in ``full``
 
+Positions below the dataset's ground plane are rendered on it (``Stage0Schedule.ground``, not in
+GIC; :meth:`Gaussians4DModule.on_ground`): the plane is kept in the checkpoint (``ground_plane``),
+so a model answers :meth:`~Gaussians4DModule.gaussians_at` as it was trained.
+
 Ground-truth images are the masked images on black (DESIGN section 7). Positions at time ``t``
 are ``x_t = x_0 + Δ(x_0, t)``; during the static warm-up (the first ``warmup`` iterations, frame
 0 only) ``Δ`` is not evaluated. SSIM is the 3DGS definition (:func:`toolkit.metrics.ssim_torch`,
@@ -192,6 +196,7 @@ class Gaussians4DModule(pl.LightningModule):
             rkw.setdefault("validate", False)
         self.renderer = get_renderer(self.renderer_name, background=tuple(background), **rkw)
         self.register_buffer("extent", torch.ones(()))
+        self.register_buffer("ground_plane", torch.full((6,), float("nan")))  # point, unit normal; NaN: none
         self._ssim = _SSIM()
         self.step = 0
         self.stop_at: Optional[int] = None
@@ -257,6 +262,9 @@ class Gaussians4DModule(pl.LightningModule):
         self.extent.fill_(0.5 * camera_extent(cams))
         t = views.times.cpu()
         self.deformation.set_normalization(lo, hi, float(t.min()), float(t.max()))
+        if self.schedule.ground and views.ground is not None:
+            point, normal = (torch.as_tensor(v, dtype=torch.float32) for v in views.ground)
+            self.ground_plane.copy_(torch.cat([point, normal / normal.norm()]))
         self._initialized = True
         log.info("stage 0: %d initial Gaussians (%s init), at most %s, box %s..%s m", n, hp.init, cap,
                  lo.tolist(), hi.tolist())
@@ -269,7 +277,18 @@ class Gaussians4DModule(pl.LightningModule):
         if time is None:
             return g.gaussians(sh_degree=sh_degree)
         d = self.deformation(g.means, torch.as_tensor(time, dtype=g.means.dtype, device=g.means.device))
-        return g.gaussians(means=g.means + d.xyz, d_log_scales=d.log_scales, d_quats=d.quats, sh_degree=sh_degree)
+        return g.gaussians(means=self.on_ground(g.means + d.xyz), d_log_scales=d.log_scales, d_quats=d.quats,
+                           sh_degree=sh_degree)
+
+    def on_ground(self, means: torch.Tensor) -> torch.Tensor:
+        """(N, 3) ``means`` with those below the ground plane (``ground_plane``) moved onto it
+        along its normal; the gradient passes straight through. Unchanged without a plane."""
+        plane = self.ground_plane
+        if not bool(torch.isfinite(plane).all()):
+            return means
+        p, n = plane[:3].to(means.dtype), plane[3:].to(means.dtype)
+        lift = torch.relu(-((means.detach() - p) @ n))[:, None] * n
+        return means + lift
 
     def centers_at(self, times: Sequence[float] | torch.Tensor) -> torch.Tensor:
         """(T, N, 3) Gaussian centres ``x_0 + Δ(x_0, t)`` at each time (no grad)."""
@@ -278,7 +297,7 @@ class Gaussians4DModule(pl.LightningModule):
             tt = torch.as_tensor(times, dtype=g.means.dtype, device=g.means.device).reshape(-1)
             out = []
             for t in tt:  # one time at a time keeps memory at O(N)
-                out.append(g.means + self.deformation(g.means, t).xyz)
+                out.append(self.on_ground(g.means + self.deformation(g.means, t).xyz))
             return torch.stack(out) if out else torch.zeros(0, g.n, 3, device=g.means.device)
 
     def render(self, cameras: Cameras, time: float | torch.Tensor | None = None) -> RenderOutput:
@@ -378,7 +397,7 @@ class Gaussians4DModule(pl.LightningModule):
         d_ls = d_q = None
         if dynamic:
             d = self.deformation(g.means, views.times[fi])
-            means = g.means + d.xyz
+            means = self.on_ground(g.means + d.xyz)
             means.retain_grad()
             d_ls, d_q = d.log_scales, d.quats
         else:
@@ -457,6 +476,7 @@ class Gaussians4DModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         state = checkpoint.get("stage0", {})
         n = int(checkpoint["state_dict"]["gaussians.means"].shape[0])
+        checkpoint["state_dict"].setdefault("ground_plane", torch.full((6,), float("nan")))  # trained without one
         self.gaussians.resize_(n)
         self.step = int(state.get("step", 0))
         self._initialized = bool(state.get("initialized", True))

@@ -29,6 +29,8 @@ class TrainingViews:
         camera_indices: Scene camera index of each of the C cameras.
         keep: (C, H, W) float32 loss weights (0 = pixel excluded: PAC-NeRF frame -2 masks,
             :mod:`toolkit.data.exclusion`), or None.
+        ground: ``(point, normal)`` of the dataset's ground plane in the cameras' frame (metres;
+            the normal points into free space), or None when unknown.
     """
 
     cameras: Cameras
@@ -38,6 +40,7 @@ class TrainingViews:
     frames: list[int]
     camera_indices: list[int]
     keep: Optional[torch.Tensor] = None
+    ground: Optional[tuple] = None
 
     @property
     def n_frames(self) -> int:
@@ -60,6 +63,7 @@ class TrainingViews:
             frames=list(self.frames),
             camera_indices=list(self.camera_indices),
             keep=None if self.keep is None else self.keep.to(device),
+            ground=self.ground,
         )
 
     @classmethod
@@ -87,7 +91,9 @@ class TrainingViews:
         from toolkit.data.exclusion import keep_weights
 
         keep = keep_weights(dm.scene, cams_idx, size=(H, W))
-        return cls(dm.cameras[cams_idx], images, mask_t, times, frames, cams_idx, keep)
+        world = getattr(dm.scene, "world", None)
+        ground = None if world is None else (tuple(world.ground_point), tuple(world.ground_normal))
+        return cls(dm.cameras[cams_idx], images, mask_t, times, frames, cams_idx, keep, ground)
 
 
 class _StepStream(IterableDataset):
