@@ -197,6 +197,7 @@ class Gaussians4DModule(pl.LightningModule):
         self.renderer = get_renderer(self.renderer_name, background=tuple(background), **rkw)
         self.register_buffer("extent", torch.ones(()))
         self.register_buffer("ground_plane", torch.full((6,), float("nan")))  # point, unit normal; NaN: none
+        self._has_ground: Optional[bool] = None  # cached on the host: training steps do not synchronize
         self._ssim = _SSIM()
         self.step = 0
         self.stop_at: Optional[int] = None
@@ -265,6 +266,7 @@ class Gaussians4DModule(pl.LightningModule):
         if self.schedule.ground and views.ground is not None:
             point, normal = (torch.as_tensor(v, dtype=torch.float32) for v in views.ground)
             self.ground_plane.copy_(torch.cat([point, normal / normal.norm()]))
+        self._has_ground = None
         self._initialized = True
         log.info("stage 0: %d initial Gaussians (%s init), at most %s, box %s..%s m", n, hp.init, cap,
                  lo.tolist(), hi.tolist())
@@ -284,7 +286,9 @@ class Gaussians4DModule(pl.LightningModule):
         """(N, 3) ``means`` with those below the ground plane (``ground_plane``) moved onto it
         along its normal; the gradient passes straight through. Unchanged without a plane."""
         plane = self.ground_plane
-        if not bool(torch.isfinite(plane).all()):
+        if self._has_ground is None:
+            self._has_ground = bool(torch.isfinite(plane).all())
+        if not self._has_ground:
             return means
         p, n = plane[:3].to(means.dtype), plane[3:].to(means.dtype)
         lift = torch.relu(-((means.detach() - p) @ n))[:, None] * n
@@ -477,6 +481,7 @@ class Gaussians4DModule(pl.LightningModule):
         state = checkpoint.get("stage0", {})
         n = int(checkpoint["state_dict"]["gaussians.means"].shape[0])
         checkpoint["state_dict"].setdefault("ground_plane", torch.full((6,), float("nan")))  # trained without one
+        self._has_ground = bool(torch.isfinite(checkpoint["state_dict"]["ground_plane"]).all())
         self.gaussians.resize_(n)
         self.step = int(state.get("step", 0))
         self._initialized = bool(state.get("initialized", True))
