@@ -65,7 +65,7 @@ def carve_through_time(
         tolerance: how far below the plane (m) a carried particle may sit (one lattice spacing:
             the carrying is an interpolation, the underside is a voxel layer).
         k: nearest Gaussians per particle (inverse-distance weights).
-        chunk: particles per distance batch (memory: ``chunk * G`` floats).
+        chunk: most particles per distance batch (fewer when ``chunk * G`` exceeds 2**26 floats).
 
     The floor of a frame is the plane, or the lowest carrying centre where the model puts
     Gaussians below it (the model's own placement error there is not the object's extent).
@@ -80,6 +80,7 @@ def carve_through_time(
     if n == 0 or centres.shape[0] == 0 or not centres_later:
         return keep, [0] * len(centres_later), [0.0] * len(centres_later)
     k = min(k, centres.shape[0])
+    chunk = max(1, min(chunk, (1 << 26) // centres.shape[0]))  # at most 64M distances (256 MB) at once
     idx_all, w_all = [], []
     for s in range(0, n, chunk):
         d = torch.cdist(particles[s:s + chunk], centres)
