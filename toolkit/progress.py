@@ -7,7 +7,7 @@ the caller passes ``progress=False``, or when ``PROJO4D_PROGRESS=0``.
 
 * :class:`IterationBar` is a Lightning progress-bar callback driven by the module's own iteration
   counter (not Lightning's batch count, which counted one ahead and had no total in stage 0);
-* :func:`stage0_progress_bar` is that bar for :func:`toolkit.scene.stage0.fit_stage0`
+* :func:`stage0_progress_bar` is that bar for :func:`toolkit.scene.stage0_fit.fit_stage0`
   (:func:`toolkit.physics.callbacks.curriculum_progress_bar` is the physics one);
 * :func:`step_progress` is a plain bar over a known number of steps (evaluation).
 """

@@ -23,6 +23,7 @@ import torch
 from toolkit.cameras import Cameras
 
 __all__ = [
+    "colors_from_views",
     "camera_focus_point",
     "camera_extent",
     "grid_points",
@@ -237,3 +238,18 @@ def gic_num_points(bbox_min, bbox_max) -> int:
     """GIC's number of initial points for a box: ``clip(prod(50 * (max - min)), 1e4, 2e5)``."""
     ext = np.asarray(bbox_max, dtype=np.float64) - np.asarray(bbox_min, dtype=np.float64)
     return int(min(max(float(np.prod(ext * 50.0)), 1e4), 2e5))
+
+
+def colors_from_views(points: torch.Tensor, cameras: Cameras, images: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """(N, 3) mean image colour at each point's projection over the views whose mask covers it."""
+    uv, z = cameras.project(points)
+    W, H = cameras.width, cameras.height
+    u = torch.floor(uv[..., 0]).long()
+    v = torch.floor(uv[..., 1]).long()
+    ok = (z > cameras.near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
+    ci = torch.arange(len(cameras))[:, None].expand_as(ui)
+    ok = ok & (masks[ci, vi, ui] > 0.5)
+    col = images[ci, vi, ui] * ok[..., None]
+    cnt = ok.sum(0)[:, None]
+    return torch.where(cnt > 0, col.sum(0) / cnt.clamp_min(1), torch.full_like(col[0], 0.5)).clamp(0.02, 0.98)

@@ -52,7 +52,6 @@ import logging
 import math
 import random
 import dataclasses
-from pathlib import Path
 from typing import Any, Literal, Optional, Sequence
 
 import pytorch_lightning as pl
@@ -81,6 +80,7 @@ from toolkit.scene.initialization import (
     camera_extent,
     gic_num_points,
     mask_bounding_box,
+    colors_from_views,
     random_box_points,
     visual_hull_points,
 )
@@ -253,7 +253,7 @@ class Gaussians4DModule(pl.LightningModule):
             n = int(hp.init_points or 2000)
             n = n if cap is None else max(1, min(n, cap))
             pts = visual_hull_points(cams, masks0, n, bbox=(lo, hi), resolution=hp.hull_resolution, seed=self.seed)
-            colors = _colors_from_views(pts, cams, views.images[0].cpu(), masks0)
+            colors = colors_from_views(pts, cams, views.images[0].cpu(), masks0)
         else:
             n = int(hp.init_points or gic_num_points(lo.numpy(), hi.numpy()))
             n = n if cap is None else max(1, min(n, cap))
@@ -490,84 +490,4 @@ class Gaussians4DModule(pl.LightningModule):
         self._views = None
 
 
-def _colors_from_views(points: torch.Tensor, cameras: Cameras, images: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
-    """(N, 3) mean image colour at each point's projection over the views whose mask covers it."""
-    uv, z = cameras.project(points)
-    W, H = cameras.width, cameras.height
-    u = torch.floor(uv[..., 0]).long()
-    v = torch.floor(uv[..., 1]).long()
-    ok = (z > cameras.near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    ui, vi = u.clamp(0, W - 1), v.clamp(0, H - 1)
-    ci = torch.arange(len(cameras))[:, None].expand_as(ui)
-    ok = ok & (masks[ci, vi, ui] > 0.5)
-    col = images[ci, vi, ui] * ok[..., None]
-    cnt = ok.sum(0)[:, None]
-    return torch.where(cnt > 0, col.sum(0) / cnt.clamp_min(1), torch.full_like(col[0], 0.5)).clamp(0.02, 0.98)
-
-
-# ====================================================================== checkpoints and a one-call fit
-
-
-def fit_stage0(
-    data: Stage0DataModule,
-    module: Optional[Gaussians4DModule] = None,
-    *,
-    out_dir: Optional[str | Path] = None,
-    checkpoint_every: Optional[int] = None,
-    ckpt_path: Optional[str | Path] = None,
-    stop_at: Optional[int] = None,
-    accelerator: str = "auto",
-    progress_bar: bool = False,
-    logger: Any = None,
-    **module_kwargs: Any,
-) -> Gaussians4DModule:
-    """Train stage 0 with a ready-configured Lightning ``Trainer``.
-
-    Args:
-        data: The training views.
-        module: A module to train (default: ``Gaussians4DModule(**module_kwargs)``).
-        out_dir: Where checkpoints go (``step_XXXXXX.ckpt``, ``last.ckpt``); None: no checkpoints.
-        checkpoint_every: Iterations between checkpoints.
-        ckpt_path: Resume from this checkpoint.
-        stop_at: Stop after this iteration (the schedule is unchanged, so a later resume
-            continues it).
-        accelerator: Lightning accelerator (``"cpu"``, ``"gpu"``, ``"auto"``).
-        progress_bar: Show the stage-0 progress bar (``stage 0``, iteration/total, ETA, loss;
-            drawn only on a terminal, see :func:`toolkit.progress.stage0_progress_bar`).
-        logger: Lightning logger(s) for the ``train/*`` metrics (loss, L1, SSIM, PSNR in dB,
-            Gaussian count, iteration; every ``schedule.log_every`` iterations). Default: with
-            ``out_dir``, CSV under ``out_dir/logs/version_K`` (and TensorBoard when installed, as
-            the physics stages do); without, none. ``False`` turns logging off.
-
-    Returns:
-        The trained module.
-    """
-    module = module if module is not None else Gaussians4DModule(**module_kwargs)
-    module.stop_at = stop_at
-    callbacks: list[pl.Callback] = []
-    if out_dir is not None:
-        callbacks.append(Stage0Checkpoint(out_dir, checkpoint_every))
-    if progress_bar:
-        from toolkit.progress import stage0_progress_bar
-
-        callbacks.append(stage0_progress_bar())
-    if logger is None:
-        from toolkit.physics.fit import default_loggers
-
-        logger = default_loggers(out_dir) if out_dir is not None else False
-    trainer = pl.Trainer(
-        accelerator=accelerator,
-        devices=1,
-        max_epochs=1,
-        max_steps=-1,
-        logger=logger,
-        log_every_n_steps=1,  # the module logs every schedule.log_every iterations itself
-        enable_checkpointing=False,
-        enable_model_summary=False,
-        enable_progress_bar=progress_bar,
-        num_sanity_val_steps=0,
-        limit_val_batches=0,
-        callbacks=callbacks,
-    )
-    trainer.fit(module, datamodule=data, ckpt_path=None if ckpt_path is None else str(ckpt_path))
-    return module
+from toolkit.scene.stage0_fit import fit_stage0  # noqa: E402  (re-exported; it needs the module above)
