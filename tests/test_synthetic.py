@@ -375,8 +375,32 @@ def test_a_generated_benchmark_suite_keeps_its_shape_set(tmp_path, monkeypatch):
     assert [sc.generate["spec"]["shape"] for sc in scenes] == ["apple", "banana", "chess"]
     calls = []
     monkeypatch.setattr("toolkit.synthetic.suite.generate_suite", lambda *a, **k: calls.append(k))
-    runner._write_suite_index(type("Spec", (), {"scenes": scenes})())
+    runner._write_suite_index(type("Spec", (), {"scenes": scenes[1:]})())  # --only: two of the three
     assert [c["shape_set"] for c in calls] == ["spring_gaus"]
+    assert calls[0]["only"] == {"neo_hookean/001", "neo_hookean/002"}
+
+
+def test_a_suite_index_generates_only_the_selected_scenes(tmp_path, monkeypatch):
+    """``only``: the scenes a benchmark's --only left out are indexed as missing (a benchmark on the
+    suite skips them), never generated; the selected one is generated and complete."""
+    from toolkit.benchmark.scenes import scenes_from_suite
+
+    tiny = {k: v for k, v in TINY.items() if k not in ("shape", "shape_size", "position", "v0", "params")}
+    from toolkit.synthetic import suite as suite_module
+
+    generated, real = [], suite_module.generate_scene
+
+    def recording(spec, path, **kwargs):
+        generated.append(Path(path).name)
+        return real(spec, path, **kwargs)
+
+    monkeypatch.setattr(suite_module, "generate_scene", recording)
+    index = generate_suite(tmp_path, ["neo_hookean"], 3, seed=5, size="small", spec_overrides=tiny, progress=False,
+                           only={"neo_hookean/001"})
+    assert generated == ["001"]
+    assert [(s["name"], s["complete"]) for s in index["scenes"]] == [
+        ("neo_hookean/000", False), ("neo_hookean/001", True), ("neo_hookean/002", False)]
+    assert [s.name for s in scenes_from_suite(tmp_path)] == ["neo_hookean/001"]
 
 
 def test_suite_writes_an_index_and_skips_complete_scenes(tmp_path, monkeypatch):

@@ -139,18 +139,20 @@ def _check_changed(jobs: Sequence[dict], redo_changed: bool, emit) -> None:
 
 
 def _write_suite_index(spec) -> None:
-    """After generate jobs: the suite's ``suite.json`` (every scene is complete, so nothing is regenerated)."""
-    suites = {}
+    """After generate jobs: the suite's ``suite.json``. The benchmark's scenes are complete, so
+    nothing is regenerated; scenes that ``--only`` left out are indexed as missing, not generated."""
+    suites, names = {}, {}
     for sc in spec.scenes:
         if sc.generate is not None:
             info = sc.generate["suite"]
             suites[info["root"]] = info
-    for info in suites.values():
+            names.setdefault(info["root"], set()).add(sc.name)
+    for root, info in suites.items():
         from toolkit.synthetic.suite import generate_suite
 
         generate_suite(info["root"], families=info["families"], scenes_per_family=info["per_family"], seed=info["seed"],
                        size=info["size"], device=info["device"], spec_overrides=info["spec_overrides"] or None,
-                       shape_set=info.get("shape_set", "pac_nerf"), progress=False)
+                       shape_set=info.get("shape_set", "pac_nerf"), progress=False, only=names[root])
 
 
 def _export(bench: Path, export: Path, emit, budget: int = 15 * 2**20) -> list[Path]:

@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import Collection, Optional, Sequence
 
 import numpy as np
 import trimesh
@@ -159,6 +159,7 @@ def generate_suite(
     spec_overrides: dict | None = None,
     shape_set: str = "pac_nerf",
     progress: bool = True,
+    only: Optional[Collection[str]] = None,
 ) -> dict:
     """Generate (or complete) a benchmark suite; returns the ``suite.json`` index.
 
@@ -174,6 +175,9 @@ def generate_suite(
         shape_set: the shapes (:data:`SHAPE_SETS`: ``pac_nerf``, drawn at random, or
             ``spring_gaus``, the seven Spring-Gaus objects in turn); recorded in the index.
         progress: show progress.
+        only: names (``family/index``) of the scenes to generate; the others are indexed as they
+            are on disk (a missing one with ``complete: false``, so a benchmark on the suite leaves
+            it out) and not generated. None: every scene.
 
     Raises:
         SpecError: unknown family or size, bad count. A scene whose generation fails is
@@ -208,6 +212,10 @@ def generate_suite(
             }
             if scene_is_complete(path, spec):
                 log.info("%s: complete, skipped", name)
+            elif only is not None and name not in only:
+                entry["not_generated"] = "not selected"
+                scenes.append({**entry, "complete": False})
+                continue
             else:
                 if progress:
                     log.info("%s: generating (%s, %s)", name, spec.shape, spec.params)
