@@ -128,3 +128,26 @@ def test_stage0_renders_positions_below_the_ground_on_it():
     m.on_load_checkpoint(ckpt)  # a checkpoint from before the plane: the module forgets its own
     assert torch.isnan(ckpt["state_dict"]["ground_plane"]).all() and torch.equal(m.on_ground(x), x)
 
+
+
+def test_stage0_with_the_ground_keeps_its_plane_through_a_checkpoint(tmp_path):
+    """A short stage 0 with ``ground: true`` on a generated torus that lands in its last training
+    frame: the plane is the scene's world, every deformed centre of every frame is above it, and
+    a model loaded from the checkpoint has the same plane (a default stage 0 has none)."""
+    from tests.test_stage0 import _tiny_scene
+    from toolkit.data import load_scene
+    from toolkit.scene.stage0 import Stage0DataModule, Stage0Schedule, fit_stage0
+
+    scene = load_scene(_tiny_scene(tmp_path))
+    dm = Stage0DataModule(scene, cameras="sparse", n_train=7)
+    schedule = {**Stage0Schedule.tiny().to_dict(), "iterations": 120, "warmup": 40, "ground": True}
+    model = fit_stage0(dm, Gaussians4DModule.from_preset("tiny", schedule=schedule), out_dir=tmp_path / "ck",
+                       checkpoint_every=1000, accelerator="cpu")
+    torch.testing.assert_close(model.ground_plane, torch.tensor([0.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    centres = model.centers_at(dm.training_views().times)
+    assert float(height_above(centres.reshape(-1, 3), GROUND).min()) >= -1e-6
+    loaded = Gaussians4DModule.load_from_checkpoint(tmp_path / "ck" / "last.ckpt", map_location="cpu")
+    torch.testing.assert_close(loaded.ground_plane, model.ground_plane)
+    below = torch.tensor([[0.0, -0.2, 0.0]])
+    assert float(loaded.on_ground(below)[0, 1]) == 0.0
+    assert torch.isnan(Gaussians4DModule.from_preset("tiny").ground_plane).all()
