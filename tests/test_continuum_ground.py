@@ -106,9 +106,13 @@ def test_a_body_below_the_ground_is_reported_as_such():
     assert res.particles.shape[0] == 0 and "below the dataset's ground plane" in res.empty_reason()
 
 
-def test_ground_clip_setting_is_checked():
+def test_ground_settings_are_checked():
+    from toolkit.scene.stage0 import Stage0Schedule
+
     with pytest.raises(ValueError, match="ground_clip must be true or false"):
         ContinuumConfig(ground_clip="yes")
+    with pytest.raises(ValueError, match="stage 0 ground must be true or false, got 'yes'"):
+        Stage0Schedule(ground="yes")
 
 
 def test_stage0_renders_positions_below_the_ground_on_it():

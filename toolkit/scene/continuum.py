@@ -467,7 +467,8 @@ def build_continuum(
             inner = inner[above_ground(inner, floor, slack=h / 2)]
             spacing = h
             if floor is not None and inner.shape[0]:
-                others = [f for f in range(len(time_list)) if f != fi and f not in set(int(x) for x in lost_frames)]
+                skip = {fi, *(int(x) for x in lost_frames)}
+                others = [f for f in range(len(time_list)) if f not in skip]
                 inner, st["ground_carve"] = carve_first_frame(inner, g_raw, usable[keep], others, floor, h,
                                                               lambda f: _frame_gaussians(model, f, time_list[f]))
             particles = inner.float().cpu()

@@ -32,8 +32,8 @@ Ground = tuple[Sequence[float], Sequence[float]]
 
 def height_above(points: torch.Tensor, ground: Ground) -> torch.Tensor:
     """Signed height (m) of (..., 3) ``points`` above the plane ``ground`` (positive: free side)."""
-    p = torch.as_tensor(ground[0], dtype=points.dtype, device=points.device)
-    n = torch.as_tensor(ground[1], dtype=points.dtype, device=points.device)
+    p = torch.as_tensor(ground[0], dtype=points.dtype).to(points.device)
+    n = torch.as_tensor(ground[1], dtype=points.dtype).to(points.device)
     return (points - p) @ (n / n.norm())
 
 

@@ -59,6 +59,7 @@ import torch
 
 from renderers import RENDERERS, get_renderer
 from renderers.base import Gaussians, RenderOutput
+from toolkit.scene.continuum_ground import height_above
 from toolkit.scene.silhouette_anchor import mask_centroids, silhouette_anchor_loss
 from toolkit.scene.stage0_data import Stage0DataModule, TrainingViews
 from toolkit.scene.stage0_losses import _SSIM, screen_space_stats
@@ -290,9 +291,8 @@ class Gaussians4DModule(pl.LightningModule):
             self._has_ground = bool(torch.isfinite(plane).all())
         if not self._has_ground:
             return means
-        p, n = plane[:3].to(means.dtype), plane[3:].to(means.dtype)
-        lift = torch.relu(-((means.detach() - p) @ n))[:, None] * n
-        return means + lift
+        normal = plane[3:].to(means.dtype)
+        return means + torch.relu(-height_above(means.detach(), (plane[:3], normal)))[:, None] * normal
 
     def centers_at(self, times: Sequence[float] | torch.Tensor) -> torch.Tensor:
         """(T, N, 3) Gaussian centres ``x_0 + Δ(x_0, t)`` at each time (no grad)."""

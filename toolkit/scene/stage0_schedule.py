@@ -121,6 +121,8 @@ class Stage0Schedule(DictSettings):
             raise ValueError(f"iterations must be >= 1 and warmup >= 0, got {self.iterations}, {self.warmup}")
         if self.densify_interval < 1 or self.opacity_reset_interval < 1 or self.sh_increase_interval < 1:
             raise ValueError("densify_interval, opacity_reset_interval and sh_increase_interval must be >= 1")
+        if not isinstance(self.ground, bool):
+            raise ValueError(f"stage 0 ground must be true or false, got {self.ground!r}")
         for name in ("frame_curriculum", "lambda_anchor", "anchor_tolerance", "gaussians_per_observed_pixel"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
