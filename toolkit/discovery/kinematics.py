@@ -11,6 +11,16 @@ on a straight horizontal line. A missing force leaves a signature in that line:
   in a flight at all;
 * a **wall** bends it *abruptly*: two straight segments.
 
+A smooth bend has a second signature, its **force law** (:func:`force_law`): a constant
+acceleration (an extra acceleration; ground friction while the body slides) keeps bending the
+track at the same rate, while a drag fades with the speed. Over every fit frame (the ground of
+the base model is flat and frictionless, so the horizontal centroid feels only the missing
+force), a parabola and a linear drag (``x(t) = x0 + v0 (1 - exp(-k t)) / k``, ``k`` scanned)
+are compared by the same leave-one-frame-out error; one counts when it predicts at least
+:data:`BEND_FACTOR` times better than the other. Over a short clip a weak drag and a constant
+deceleration look alike (the law is then ``"either"``); a strong constant acceleration, or one
+that does not point against the motion, is told from a drag.
+
 :func:`observed_motion` fits the centroid over the phase's frames with three models of the
 horizontal (x, z) motion, a straight line, a parabola and two straight segments meeting at a
 frame, and compares them by their leave-one-frame-out prediction error (the same reason as
@@ -22,7 +32,8 @@ Two uses in discovery (:mod:`toolkit.discovery.workflow`):
 
 * **a tie-break by kind** (:func:`preferred_candidates`): among candidates the validation data
   cannot tell apart, a smooth bend prefers the forces that act smoothly in that phase (body
-  forces; on a slide also ground friction), an abrupt one the wall;
+  forces; on a slide also ground friction), narrowed by the force law (a constant one drops air
+  drag, a fading one keeps air drag alone), an abrupt one the wall;
 * **a start for the extra acceleration's refit** (flights only): the parabola's acceleration
   less gravity, and its initial velocity. A first-order prediction from a base fit that absorbed
   the force (a slower throw) can point the wrong way; the observed flight does not depend on the
@@ -39,8 +50,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "fit_motion", "leading_phase",
-           "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start", "motion_sentence"]
+__all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "CONSTANT_FORCES", "fit_motion",
+           "force_law", "leading_phase", "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start",
+           "motion_sentence", "law_sentence"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +62,10 @@ MIN_PHASE_FRAMES = 5
 BEND_FACTOR = 2.0
 #: candidates that act on the body everywhere, in flight too
 BODY_FORCES = ("extra_acceleration", "air_drag")
+#: candidates whose horizontal pull does not fade with the speed (friction only while sliding)
+CONSTANT_FORCES = ("extra_acceleration", "ground_friction")
+#: drag rates (1/s) scanned by :func:`force_law`; 0 is the straight line
+DRAG_RATES = np.concatenate([[0.0], np.geomspace(0.05, 30.0, 120)])
 
 
 @dataclass
@@ -66,6 +82,11 @@ class ObservedMotion:
             (``line``, ``parabola``, ``segments``).
         kink_frame: where the two segments meet (a frame index) when ``shape == "kink"``.
         phase: ``"flight"`` (off the ground) or ``"slide"`` (on it).
+        law: the horizontal force law over :attr:`law_frames` (:func:`force_law`):
+            ``"constant"``, ``"drag"`` or ``"either"``.
+        law_loo: leave-one-frame-out RMS error (m) of the ``constant`` and the ``drag`` model.
+        drag_rate: the linear drag rate ``k`` (1/s) fitted to every law frame.
+        law_frames: the frames the law was judged on (every fit frame with observed surfaces).
     """
 
     frames: list[int]
@@ -76,11 +97,18 @@ class ObservedMotion:
     loo: dict[str, float] = field(default_factory=dict)
     kink_frame: Optional[int] = None
     phase: str = "flight"
+    law: str = "either"
+    law_loo: dict[str, float] = field(default_factory=dict)
+    drag_rate: Optional[float] = None
+    law_frames: list[int] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"phase": self.phase, "frames": list(self.frames), "acceleration": [float(a) for a in self.acceleration],
                 "extra": [float(a) for a in self.extra], "v0": [float(v) for v in self.v0], "shape": self.shape,
-                "loo": {k: float(v) for k, v in self.loo.items()}, "kink_frame": self.kink_frame}
+                "loo": {k: float(v) for k, v in self.loo.items()}, "kink_frame": self.kink_frame, "law": self.law,
+                "law_loo": {k: float(v) for k, v in self.law_loo.items()},
+                "drag_rate": None if self.drag_rate is None else float(self.drag_rate),
+                "law_frames": list(self.law_frames)}
 
 
 def _design(t: np.ndarray, model: str, knot: Optional[float] = None) -> np.ndarray:
@@ -123,6 +151,53 @@ def loo_errors(t: np.ndarray, y: np.ndarray) -> dict[str, float]:
             err.append(float(((pred - y[k:k + 1]) ** 2).sum()))
         out[model] = float(np.sqrt(np.mean(err) / y.shape[1])) if err else float("inf")
     return out
+
+
+def _drag_design(t: np.ndarray, k: float) -> np.ndarray:
+    e = t if k <= 0 else -np.expm1(-k * t) / k
+    return np.stack([np.ones_like(t), e], 1)
+
+
+def _fit_drag(t: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+    """Least squares of ``y`` (T, D) by ``x0 + v0 (1 - exp(-k t)) / k`` with one rate ``k`` for
+    every column (scanned over :data:`DRAG_RATES`): ``(k, coefficients (2, D))``."""
+    best = None
+    for k in DRAG_RATES:
+        A = _drag_design(t, float(k))
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        rss = float(((A @ coef - y) ** 2).sum())
+        if best is None or rss < best[0]:
+            best = (rss, float(k), coef)
+    return best[1], best[2]
+
+
+def force_law(times: np.ndarray, y: np.ndarray, factor: float = BEND_FACTOR) -> tuple[str, dict[str, float], float]:
+    """Whether the pull on a horizontal track ``y`` (T, D), m, at ``times`` (T,), s, is constant
+    or fades with the speed: ``(law, loo, k)``.
+
+    ``loo``: leave-one-frame-out RMS error (m) of a parabola (``constant``) and of a linear drag
+    (``drag``: ``y0 + v0 (1 - exp(-k t)) / k``, one rate for all columns, refitted without each
+    frame). ``law`` is ``"constant"`` or ``"drag"`` when that model predicts at least ``factor``
+    times better than the other, else ``"either"``; ``k`` (1/s) is the drag rate fitted to every
+    frame. Needs at least :data:`MIN_PHASE_FRAMES` frames (``"either"`` otherwise)."""
+    t = np.asarray(times, np.float64)
+    y = np.asarray(y, np.float64)
+    if len(t) < MIN_PHASE_FRAMES:
+        return "either", {}, float("nan")
+    err_c, err_d = [], []
+    for i in range(len(t)):
+        keep = np.arange(len(t)) != i
+        coef, _, _ = _fit(t[keep], y[keep], "parabola")
+        err_c.append(float(((_design(t[i:i + 1], "parabola") @ coef - y[i:i + 1]) ** 2).sum()))
+        k, cd = _fit_drag(t[keep], y[keep])
+        err_d.append(float(((_drag_design(t[i:i + 1], k) @ cd - y[i:i + 1]) ** 2).sum()))
+    loo = {"constant": float(np.sqrt(np.mean(err_c) / y.shape[1])), "drag": float(np.sqrt(np.mean(err_d) / y.shape[1]))}
+    law = "either"
+    if loo["constant"] * factor <= loo["drag"]:
+        law = "constant"
+    elif loo["drag"] * factor <= loo["constant"]:
+        law = "drag"
+    return law, loo, _fit_drag(t, y)[0]
 
 
 def fit_motion(centroids: np.ndarray, times: np.ndarray, gravity: Sequence[float],
@@ -195,7 +270,14 @@ def observed_motion(lib, q: np.ndarray, frames: Optional[Sequence[int]] = None) 
     c = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in fl])
     t = np.array([float(inp.times[f]) for f in fl]) - float(inp.times[0])
     g = lib.gravity(q).detach().double().cpu().numpy()
-    return fit_motion(c, t, g, frames=fl, phase=phase)
+    motion = fit_motion(c, t, g, frames=fl, phase=phase)
+    lf = [f for f in frames if len(inp.surfaces[f])]
+    if motion is not None and len(lf) >= MIN_PHASE_FRAMES:
+        cl = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in lf])
+        tl = np.array([float(inp.times[f]) for f in lf]) - float(inp.times[0])
+        motion.law, motion.law_loo, motion.drag_rate = force_law(tl, cl[:, [0, 2]])
+        motion.law_frames = lf
+    return motion
 
 
 def acceleration_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> Optional[np.ndarray]:
@@ -215,12 +297,17 @@ def acceleration_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> 
 
 def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str]) -> list[str]:
     """Of ``names``, those the phase's shape supports: after a smooth bend the body forces (and
-    ground friction on a slide), after a kink the wall; none when the track is straight or there
+    ground friction on a slide), narrowed by the force law (``"constant"``: not air drag;
+    ``"drag"``: air drag alone); after a kink the wall; none when the track is straight or there
     is no phase to judge."""
     if motion is None or motion.shape == "straight":
         return []
     if motion.shape == "smooth":
         smooth = BODY_FORCES + (("ground_friction",) if motion.phase == "slide" else ())
+        if motion.law == "constant":
+            smooth = tuple(n for n in smooth if n in CONSTANT_FORCES)
+        elif motion.law == "drag":
+            smooth = ("air_drag",)
         return [n for n in names if n in smooth]
     return [n for n in names if n == "wall"]
 
@@ -233,4 +320,18 @@ def motion_sentence(motion: dict) -> str:
     return (f"Observed {motion['phase']} (frames {motion['frames'][0]}-{motion['frames'][-1]}, stage-0 centroid): "
             f"horizontal track {motion['shape']}{kink}; leave-one-frame-out error: line {1e3 * loo['line']:.2f} mm, "
             f"parabola {1e3 * loo['parabola']:.2f} mm, two segments {1e3 * loo['segments']:.2f} mm; acceleration "
-            f"not explained by gravity ({a}) m/s^2.")
+            f"not explained by gravity ({a}) m/s^2." + law_sentence(motion))
+
+
+def law_sentence(motion: dict) -> str:
+    """What the force law says (empty without one), for the report and the verdict."""
+    lo = motion.get("law_loo") or {}
+    if not lo or not motion.get("law_frames"):
+        return ""
+    fr = motion["law_frames"]
+    what = {"constant": "a constant pull (not a drag, which fades with the speed)",
+            "drag": "a pull that fades with the speed, as a drag does",
+            "either": "no preference between a constant pull and a drag"}[motion.get("law", "either")]
+    return (f" Over frames {fr[0]}-{fr[-1]} the horizontal track shows {what}: leave-one-frame-out error "
+            f"{1e3 * lo['constant']:.2f} mm for a constant acceleration, {1e3 * lo['drag']:.2f} mm for a linear "
+            f"drag (k = {motion.get('drag_rate') or 0.0:.2f} /s).")

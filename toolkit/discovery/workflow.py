@@ -449,5 +449,9 @@ def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(),
         where = "flight before the first ground contact" if motion.phase == "flight" else "slide"
         why = (f" Chosen among them because the observed {where} (frames {motion.frames[0]}-{motion.frames[-1]}) "
                f"bends {bend}.")
+        if motion.shape == "smooth" and motion.law != "either":
+            from toolkit.discovery.kinematics import law_sentence
+
+            why += law_sentence(motion.to_dict())
     return (f"Missing effect: {decision} ({s}){extra}, improving the held-out data by "
             f"{100 * validation[decision]['validation']:.0f} %{tail}.{why}{sep}")
