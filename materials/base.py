@@ -14,6 +14,12 @@ function per particle and substep, built by :meth:`Material.warp_update`::
 Parameters are optimized in a transformed ("raw") space: ``log10`` (E, viscosities, yield
 stress), ``tanh`` (Poisson's ratio, bounded to [lo, hi]) or ``linear`` (friction angle in
 degrees). :meth:`Material.to_physical` maps raw torch tensors to physical values differentiably.
+
+A parameter's **fit range** (:attr:`MaterialParam.fit_range`) is where a fit keeps it, which may be
+narrower than where it is valid: Poisson's ratio is valid down to -0.99 (auxetic foams), but a fit
+keeps it in [0, 0.49] unless told otherwise (``model: {fit_ranges: {nu: [-0.99, 0.49]}}``;
+:meth:`Material.fit_ranges`). The range is enforced by projection after each optimizer step,
+so a fit that never leaves it takes exactly the steps it would take without one.
 """
 
 from __future__ import annotations
@@ -54,6 +60,8 @@ class MaterialParam:
         search: physical ``(low, high)`` range of the coarse global search run before gradient
             descent (:mod:`toolkit.physics.coarse_search`); ``None``: not searched (the fit
             starts at the guess).
+        fit_range: physical ``(low, high)`` range a fit keeps the parameter in (inside the valid
+            range; ``None``: the valid range). See :meth:`Material.fit_ranges`.
     """
 
     name: str
@@ -66,6 +74,7 @@ class MaterialParam:
     units: str = ""
     description: str = ""
     search: tuple[float, float] | None = None
+    fit_range: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.lr is None:
@@ -76,6 +85,38 @@ class MaterialParam:
                 raise MaterialError(f"{self.name}: search range {self.search!r} must be (low, high) with low < high")
             self.check(lo)
             self.check(hi)
+        if self.fit_range is not None:
+            self.check_fit_range(self.fit_range)
+
+    @property
+    def fit_bounds(self) -> tuple[float, float]:
+        """The physical ``(low, high)`` a fit keeps the parameter in (the valid range by default)."""
+        return (float(self.fit_range[0]), float(self.fit_range[1])) if self.fit_range is not None else (self.low, self.high)
+
+    def check_fit_range(self, bounds: Any, material: str = "") -> tuple[float, float]:
+        """``bounds`` as a float pair after checking it is ``[low, high]`` with ``low < high``,
+        both inside the valid range; raises :class:`MaterialError` naming the parameter."""
+        where = f"{material}." if material else ""
+        ok = (isinstance(bounds, (list, tuple)) and len(bounds) == 2
+              and all(isinstance(b, (int, float)) and not isinstance(b, bool) and math.isfinite(b) for b in bounds))
+        if not ok or not float(bounds[0]) < float(bounds[1]):
+            raise MaterialError(f"{where}{self.name}: fit range {bounds!r} must be [low, high] with finite low < high")
+        lo, hi = float(bounds[0]), float(bounds[1])
+        inside = (lo >= self.low if self.transform != "log10" else lo > self.low) and hi <= self.high
+        if not inside:
+            raise MaterialError(f"{where}{self.name}: fit range [{lo:g}, {hi:g}] must lie inside the valid range "
+                                f"{'(' if self.transform == 'log10' else '['}{self.low:g}, {self.high:g}]")
+        return lo, hi
+
+    def raw_fit_bounds(self, bounds: tuple[float, float]) -> tuple[float, float]:
+        """``bounds`` (physical) in the raw space; an end at the valid range's edge (which the
+        transform cannot pass anyway) is left open (``-inf`` / ``inf``)."""
+        lo, hi = bounds
+        at_low = lo <= self.low or (self.transform == "log10" and lo <= 0)
+        at_high = hi >= self.high
+        rlo = -math.inf if at_low else float(self.to_raw(lo))
+        rhi = math.inf if at_high else float(self.to_raw(hi))
+        return rlo, rhi
 
     def check(self, value: float, material: str = "") -> None:
         """Raise :class:`MaterialError` if ``value`` is outside the valid range."""
@@ -89,7 +130,7 @@ class MaterialParam:
                     f"{where}{self.name} = {v:g} is out of range: expected {self.low:g} < {self.name} <= {self.high:g}"
                     + (f" {self.units}" if self.units else "")
                 )
-        elif not (self.low <= v <= self.high):
+        elif not (float(np.float32(self.low)) <= v <= float(np.float32(self.high))):  # parameters travel as float32
             raise MaterialError(
                 f"{where}{self.name} = {v:g} is out of range: expected {self.low:g} <= {self.name} <= {self.high:g}"
                 + (f" {self.units}" if self.units else "")
@@ -112,7 +153,8 @@ class MaterialParam:
             return torch.pow(10.0, raw)
         if self.transform == "tanh":
             r = self.high - self.low
-            return (r / 2) * torch.tanh(2 * raw / r) + self.low + r / 2
+            # a saturated tanh can round past an end in float32 (0.49 -> 0.49000001)
+            return ((r / 2) * torch.tanh(2 * raw / r) + self.low + r / 2).clamp(self.low, self.high)
         return raw
 
 
@@ -185,6 +227,33 @@ class Material:
             if p.name == name:
                 return p
         raise MaterialError(f"material {self.name!r} has no parameter {name!r}; its parameters are {self.param_names}")
+
+    def fit_ranges(self, overrides: Mapping[str, Any] | str | None = None) -> dict[str, tuple[float, float]]:
+        """Physical ``(low, high)`` per parameter that a fit keeps it in.
+
+        Args:
+            overrides: ``None``: each parameter's :attr:`MaterialParam.fit_bounds`; ``"valid"``: the
+                valid ranges (no narrower range, as fits did before fit ranges existed); a mapping
+                ``{name: [low, high]}`` replaces the named parameters' ranges (inside the valid range).
+
+        Raises:
+            MaterialError: an unknown parameter name or a range outside the valid one.
+        """
+        if overrides == "valid":
+            return {p.name: (p.low, p.high) for p in self.params}
+        out = {p.name: p.fit_bounds for p in self.params}
+        if overrides is None:
+            return out
+        if not isinstance(overrides, Mapping):
+            raise MaterialError(f"{self.name}: fit ranges must be 'valid' or a mapping {{parameter: [low, high]}}, "
+                                f"got {overrides!r}")
+        unknown = set(overrides) - set(self.param_names)
+        if unknown:
+            raise MaterialError(f"material {self.name!r} has no parameter(s) {sorted(unknown)} to give a fit range; "
+                                f"its parameters are {self.param_names}")
+        for name, bounds in overrides.items():
+            out[name] = self.param(name).check_fit_range(bounds, self.name)
+        return out
 
     def defaults(self) -> dict[str, float]:
         """Default starting guesses, physical units."""

@@ -16,8 +16,10 @@ MIN_VOLUME_RATIO = 1.0e-4
 YOUNGS_MODULUS = MaterialParam(
     "E", 10**5.5, "log10", low=0.0, high=1e12, units="Pa", description="Young's modulus", search=(10**3.5, 10**6.5)
 )
+#: valid down to -0.99 (auxetic foams); a fit keeps it in [0, 0.49] unless its fit range is widened
 POISSON_RATIO = MaterialParam(
-    "nu", 0.25, "tanh", low=-0.99, high=0.49, description="Poisson's ratio (tanh-bounded)", search=(0.05, 0.45)
+    "nu", 0.25, "tanh", low=-0.99, high=0.49, description="Poisson's ratio (tanh-bounded)", search=(0.05, 0.45),
+    fit_range=(0.0, 0.49),
 )
 
 

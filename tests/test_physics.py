@@ -219,3 +219,67 @@ def test_sigterm_in_the_last_iteration_stops_as_an_interruption(tiny_input, tmp_
         fit_physics(m, tmp_path, checkpoint_every=0, accelerator="cpu", progress=False, callbacks=callbacks)
     assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["projo4d"]["curriculum_step"] == 3
     assert not (tmp_path / "estimate.json").exists()  # on_train_end did not run: a rerun finishes it
+
+
+def test_poissons_ratio_is_fitted_inside_its_fit_range(tiny_input, tmp_path):
+    """nu is valid in [-0.99, 0.49] but fitted in [0, 0.49] by default: a step that takes it to
+    -0.3 is projected onto 0 (E untouched), a value inside the range is left bit-exact, and
+    fit_ranges widens the range; the fit applies the projection after its steps."""
+    m = _module(tiny_input, "XASM:2", optimize_params=["E", "nu"], initial_params={"E": 1e4, "nu": 0.0},
+                material_init="given")
+    p = m.material.param("nu")
+    assert m.fit_bounds["nu"] == (0.0, 0.49)
+    e_raw = m.material_raw["E"].detach().clone()
+    with torch.no_grad():
+        m.material_raw["nu"].copy_(p.to_raw(-0.3))
+    m.project_material_bounds()
+    assert float(p.to_physical(m.material_raw["nu"].detach())) == pytest.approx(0.0, abs=1e-5)
+    assert torch.equal(m.material_raw["E"], e_raw)
+    with torch.no_grad():
+        m.material_raw["nu"].copy_(p.to_raw(0.21))
+    inside = m.material_raw["nu"].detach().clone()
+    m.project_material_bounds()
+    assert torch.equal(m.material_raw["nu"], inside)
+
+    wide = _module(tiny_input, "XASM:2", optimize_params=["E", "nu"], fit_ranges={"nu": [-0.99, 0.49]},
+                   material_init="given")
+    with torch.no_grad():
+        wide.material_raw["nu"].copy_(p.to_raw(-0.3))
+    wide.project_material_bounds()
+    assert float(p.to_physical(wide.material_raw["nu"].detach())) == pytest.approx(-0.3, abs=1e-5)
+
+    # in a fit: a value below the range (set by hand, past the start check) is projected after the
+    # first step (rate 1e-6: the step itself moves nu by ~1e-6); the widened range keeps it
+    for module, expected in ((m, 0.0), (wide, -0.3)):
+        with torch.no_grad():
+            module.material_raw["nu"].copy_(p.to_raw(-0.3))
+        module.lrs["nu"] = 1e-6
+        fit_physics(module, tmp_path / str(expected), checkpoint_every=0, accelerator="cpu", progress=False)
+        assert float(p.to_physical(module.material_raw["nu"].detach())) == pytest.approx(expected, abs=1e-4)
+
+
+def test_uncertainty_probes_and_intervals_stay_inside_the_fit_range(tiny_input):
+    """The Laplace interval's ends and probes of nu are clamped to its fit range, as a linear
+    parameter's are to its valid range: a raw value meaning nu = -0.3 reads as 0, and setting it
+    stores 0; E (no narrower range) passes through."""
+    from toolkit.physics.uncertainty import _parameters
+
+    m = _module(tiny_input, "S:1", optimize_params=["E", "nu"], initial_params={"E": 1e4, "nu": 0.2})
+    p = m.material.param("nu")
+    handles = {h.name: h for h in _parameters(m)}
+    assert handles["nu"].physical(float(p.to_raw(-0.3))) == pytest.approx(0.0, abs=1e-5)
+    assert handles["nu"].physical(float(p.to_raw(0.3))) == pytest.approx(0.3, abs=1e-5)
+    handles["nu"].set(float(p.to_raw(-0.3)))
+    assert float(p.to_physical(m.material_raw["nu"].detach())) == pytest.approx(0.0, abs=1e-5)
+    assert handles["E"].physical(5.0) == pytest.approx(1e5, rel=1e-5)
+
+
+def test_a_start_outside_the_fit_range_is_refused(tiny_input):
+    with pytest.raises(ValueError, match=r"initial nu = -0.2 is outside its fit range \[0, 0.49\]"):
+        _module(tiny_input, "S:1", optimize_params=["E", "nu"], initial_params={"E": 1e4, "nu": -0.2})
+    m = _module(tiny_input, "S:1", optimize_params=["E", "nu"], initial_params={"E": 1e4, "nu": -0.2},
+                fit_ranges={"nu": [-0.5, 0.49]})
+    assert m.fit_bounds["nu"] == (-0.5, 0.49)
+    _module(tiny_input, "S:1", initial_params={"E": 1e4, "nu": -0.2})  # nu not optimized: no range applies
+    with pytest.raises(ValueError, match=r"fit range \[-2, 0.4\] must lie inside the valid range \[-0.99, 0.49\]"):
+        _module(tiny_input, "S:1", fit_ranges={"nu": [-2, 0.4]})

@@ -390,6 +390,23 @@ def test_settings_are_checked_through_the_api_too(scene, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_fit_ranges_are_checked_before_any_work(scene, tmp_path):
+    """A Poisson's ratio start below the default fit range [0, 0.49], an unknown parameter and a
+    range outside the valid one are refused naming the field; a widened range accepts the start."""
+    from toolkit.run_validation import validate_run_settings
+
+    s = _settings(scene, tmp_path / "o", geometry="oracle", optimize_params=["E", "nu"], initial_params={"nu": -0.2})
+    with pytest.raises(SettingsError, match=r"initial_params.nu = -0.2: expected a start inside its fit range \[0, 0.49\]"):
+        run_pipeline(s)
+    bad = replace(s, model_options={"fit_ranges": {"mu": [0, 1]}})
+    with pytest.raises(SettingsError, match=r"model_options.fit_ranges .*no parameter\(s\) \['mu'\]"):
+        run_pipeline(bad)
+    with pytest.raises(SettingsError, match="must lie inside the valid range"):
+        run_pipeline(replace(s, model_options={"fit_ranges": {"nu": [-2, 0.4]}}))
+    assert not (tmp_path / "o").exists()
+    validate_run_settings(replace(s, model_options={"fit_ranges": {"nu": [-0.5, 0.49]}}))
+
+
 # ---------------------------------------------------------------------------- real signals, real processes
 
 

@@ -354,6 +354,7 @@ def load_fitted_module(run: str | Path, device: str = "cpu"):
     for k in ("input_path", "curriculum_name"):
         hp.pop(k, None)
     hp.setdefault("gaussian_shape", "rigid")  # runs saved before the option existed kept their Gaussians' shapes
+    hp.setdefault("fit_ranges", "valid")  # runs saved before fit ranges existed had none
     module = InversePhysicsModule(str(run / "physics_input.pt"), sim=sim, **hp)
     module.load_state_dict(ckpt["state_dict"], strict=False)
     module.on_load_checkpoint(ckpt)

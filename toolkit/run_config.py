@@ -9,7 +9,7 @@ Nothing is dropped: every key is either carried or refused.
   ``input_path`` (the pipeline writes the physics input). The arguments RunSettings has fields for
   (:data:`RUN_MODEL_KEYS`) go to those fields; the others (:data:`MODULE_OPTIONS`: ``effects``,
   ``v0_init``, ``material_init``, ``lambda_image``, ``ssim_weight``, ``warmup_fraction``, ``embedding_neighbours``, ``embedding``,
-  ``gaussian_shape``) go to ``RunSettings.model_options`` and on to the module unchanged.
+  ``gaussian_shape``, ``fit_ranges``) go to ``RunSettings.model_options`` and on to the module unchanged.
 * ``trainer:`` -- the Trainer keys that mean something for a whole run (:data:`TRAINER_KEYS`):
   ``accelerator`` (``auto``/``cpu``/``gpu``/``cuda``) becomes ``device`` unless ``run:`` sets it;
   ``default_root_dir`` is ``projo4d fit``'s folder and is accepted but not used: a run's folder is
@@ -37,7 +37,7 @@ RUN_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_pa
                   "lambda_geometry", "learning_rates", "renderer", "seed", "optimize_gravity")
 #: the other InversePhysicsModule arguments, carried in ``RunSettings.model_options``
 MODULE_OPTIONS = ("effects", "v0_init", "material_init", "lambda_image", "ssim_weight", "warmup_fraction",
-                  "embedding_neighbours", "embedding", "gaussian_shape")
+                  "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges")
 #: ``trainer:`` keys ``projo4d run`` accepts and the RunSettings field each sets (None: accepted, not used)
 TRAINER_KEYS = {"accelerator": "device", "default_root_dir": None}
 #: Lightning accelerator -> RunSettings.device
@@ -143,7 +143,9 @@ def check_model_options(options: Any) -> None:
     ``lambda_image`` (>= 0 or None: ``1 / cameras``), ``ssim_weight`` in [0, 1],
     ``warmup_fraction`` in [0, 1), ``embedding_neighbours`` (integer >= 1), ``embedding``
     (``"idw"`` or ``"affine"``, :mod:`toolkit.physics.embedding`), ``gaussian_shape`` (``"rigid"``
-    or ``"deformed"``).
+    or ``"deformed"``), ``fit_ranges`` (``"valid"`` or ``{parameter: [low, high]}``; the
+    parameters and ranges are checked against the material by
+    :func:`toolkit.run_validation.validate_run_settings`).
 
     Raises:
         SettingsError: naming ``model_options.<key>``, the value and what is valid.
@@ -174,6 +176,11 @@ def check_model_options(options: Any) -> None:
     if options.get("embedding", "idw") not in ("idw", "affine"):
         raise SettingsError("model_options.embedding", options["embedding"],
                             "expected 'idw' (inverse distance, the default) or 'affine' (Gaussians follow any locally affine motion exactly)")
+    fr = options.get("fit_ranges")
+    if fr is not None and fr != "valid" and not (isinstance(fr, dict) and all(
+            isinstance(v, (list, tuple)) and len(v) == 2 for v in fr.values())):
+        raise SettingsError("model_options.fit_ranges", fr,
+                            "expected 'valid' (each parameter's valid range) or {parameter: [low, high]}")
     if options.get("gaussian_shape", "rigid") not in ("rigid", "deformed"):
         raise SettingsError("model_options.gaussian_shape", options["gaussian_shape"],
                             "expected 'rigid' (Gaussians keep their stage-0 shapes) or 'deformed' (their covariances follow the material)")

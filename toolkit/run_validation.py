@@ -10,6 +10,7 @@ it into one line and exit code 2. Nothing is written.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -120,6 +121,16 @@ def validate_run_settings(s) -> dict:
 
     material = _check("material", s.material, lambda: get_material(s.material, **(s.material_options or {})))
     _check("initial_params", s.initial_params, lambda: material.validate(material.complete(s.initial_params)))
+    fit_ranges = _check("model_options.fit_ranges", (s.model_options or {}).get("fit_ranges"),
+                        lambda: material.fit_ranges((s.model_options or {}).get("fit_ranges")))
+    wanted = s.optimize_params if s.optimize_params is not None else [p.name for p in material.params if p.optimize]
+    for name, value in (s.initial_params or {}).items():
+        lo, hi = fit_ranges.get(name, (-math.inf, math.inf))
+        if name in wanted and not lo <= float(value) <= hi:
+            raise SettingsError(f"initial_params.{name}", value,
+                                f"expected a start inside its fit range [{lo:g}, {hi:g}]; widen the range with "
+                                f"model: {{fit_ranges: {{{name}: [low, high]}}}} (valid: [{material.param(name).low:g}, "
+                                f"{material.param(name).high:g}])")
     if s.optimize_params is not None:
         unknown = set(s.optimize_params) - set(material.param_names)
         if unknown:

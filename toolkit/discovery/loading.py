@@ -60,6 +60,7 @@ def load_fitted_module(run_dir: Optional[str | Path] = None, *, input_path: Opti
     hp = dict(ckpt.get("hyper_parameters", {}))
     accepted = set(inspect.signature(InversePhysicsModule.__init__).parameters) - {"self", "input_path"}
     kwargs = {k: v for k, v in hp.items() if k in accepted}
+    kwargs.setdefault("fit_ranges", "valid")  # runs saved before fit ranges existed had none
     if isinstance(kwargs.get("sim"), dict):
         sim = dict(kwargs["sim"])
         if sim.get("domain") is not None:

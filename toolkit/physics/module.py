@@ -27,6 +27,7 @@ checkpoints): under manual optimization Lightning's ``global_step`` counts optim
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any, Optional, Union
 
 import pytorch_lightning as pl
@@ -109,6 +110,12 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
             that spreads or stretches keeps covering what it covers in the images instead of
             breaking into rigid blobs) or ``"rigid"`` (each keeps its stage-0 shape while it moves;
             the default before 2026-11-26, and what runs saved before then replay with).
+        fit_ranges: where the fit keeps each optimized material parameter
+            (:meth:`materials.base.Material.fit_ranges`): ``None`` (default) each parameter's own
+            fit range (Poisson's ratio in [0, 0.49], inside its valid [-0.99, 0.49]), ``"valid"``
+            the valid ranges (what runs saved before 2026-11-28 replay with), or
+            ``{name: [low, high]}`` for the named parameters. Enforced by projection after each
+            optimizer step; a start outside it is an error.
     """
 
     def __init__(
@@ -134,6 +141,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         embedding_neighbours: int = 8,
         embedding: str = "idw",
         gaussian_shape: str = "deformed",
+        fit_ranges: Optional[Union[dict, str]] = None,
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -239,6 +247,14 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         if unknown:
             raise ValueError(f"optimize_params {sorted(unknown)} are not parameters of {self.material.name!r} ({names})")
         self.optimized_material = [n for n in names if n in wanted]
+        self.fit_bounds = self.material.fit_ranges(fit_ranges)
+        for n in self.optimized_material:
+            lo, hi = self.fit_bounds[n]
+            if not lo <= start[n] <= hi:
+                raise ValueError(f"initial {n} = {start[n]:g} is outside its fit range [{lo:g}, {hi:g}] "
+                                 f"({self.material.name}); start inside it or widen it with fit_ranges: "
+                                 f"{{{n}: [low, high]}} (the valid range is [{self.material.param(n).low:g}, "
+                                 f"{self.material.param(n).high:g}])")
         raw = self.material.to_raw(start)
         self.material_raw = nn.ParameterDict({n: nn.Parameter(raw[i].clone()) for i, n in enumerate(names) if n in wanted})
         self.register_buffer("material_raw_fixed", raw.clone())
@@ -276,14 +292,21 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         return self.material.to_physical(torch.stack(raws))
 
     def project_material_bounds(self) -> None:
-        """Clamp optimized ``linear`` material parameters into their valid range ``[low, high]``
-        (``log10`` and ``tanh`` ones cannot leave it): an optimizer step past a bound (a friction
-        angle below 0 degrees) would otherwise stop the next rollout with a MaterialError."""
+        """Clamp the optimized material parameters into their fit ranges (``fit_ranges``; the
+        valid range ``[low, high]`` unless narrower): an optimizer step past a bound (a friction
+        angle below 0 degrees) would otherwise stop the next rollout with a MaterialError, and a
+        Poisson's ratio below 0 is kept at 0 by default. ``log10`` and ``tanh`` parameters
+        cannot leave their valid range; only a narrower fit range clamps them."""
         with torch.no_grad():
             for n, raw in self.material_raw.items():
                 p = self.material.param(n)
+                lo, hi = self.fit_bounds.get(n, (p.low, p.high))
                 if p.transform == "linear":
-                    raw.clamp_(min=p.low, max=p.high)
+                    raw.clamp_(min=max(p.low, lo), max=min(p.high, hi))
+                else:
+                    rlo, rhi = p.raw_fit_bounds((lo, hi))
+                    if math.isfinite(rlo) or math.isfinite(rhi):
+                        raw.clamp_(min=rlo, max=rhi)
 
     def estimate(self) -> dict:
         """Current estimate: material parameters (physical), v0, gravity, effects."""
