@@ -14,7 +14,7 @@ def test_materials_json(capsys):
     assert {"air_drag", "ground_friction", "extra_acceleration", "wall"} <= set(info["effects"])
     assert "torch" in info["renderers"] and "warp" in info["renderers"]
     nu = next(p for p in info["materials"]["neo_hookean"] if p["name"] == "nu")
-    assert nu["transform"] == "tanh" and nu["range"] == [-0.99, 0.49]
+    assert nu["transform"] == "tanh" and nu["range"] == [-0.99, 0.49] and nu["fit_range"] == [0.0, 0.49]
 
 
 def test_demo_settings_match_the_config_file():

@@ -36,6 +36,10 @@ def test_search_axes_and_frames_follow_the_parameters():
     log_axis, lo, hi, n = search_axis(get_material("sand").param("friction_angle"))
     assert (log_axis, lo, hi, n) == (False, 10.0, 50.0, 5)
     assert search_axis(MaterialParam("a", 0.5, "tanh", low=0.0, high=1.0, search=(0.1, 0.9)))[1:] == (0.1, 0.9, 5)
+    nu = get_material("neo_hookean").param("nu")
+    assert search_axis(nu, (0.3, 0.49))[1:] == (0.3, 0.45, 5)  # a narrowed fit range narrows the sweep
+    assert search_axis(nu, (0.0, 0.49))[1:] == (0.05, 0.45, 5)  # the default range contains the sweep
+    assert search_axis(E, (10**4.5, 1e12))[1:3] == pytest.approx((4.5, 6.5))
     with pytest.raises(ValueError, match="'k' has no search range"):
         search_axis(MaterialParam("k", 100.0, "log10"))  # not searched: keeps its guess
     assert score_frames(9) == [1, 3, 6, 8] and score_frames(5, 4) == [1, 2, 3, 4] and score_frames(1) == [0]

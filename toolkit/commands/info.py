@@ -22,7 +22,7 @@ def describe() -> dict:
         m = get_material(name)
         info["materials"][name] = [
             {"name": p.name, "default": p.default, "transform": p.transform, "range": [p.low, p.high],
-             "optimized": p.optimize, "units": p.units, "description": p.description}
+             "fit_range": list(p.fit_bounds), "optimized": p.optimize, "units": p.units, "description": p.description}
             for p in m.params
         ]
     for name in EFFECTS.names():
@@ -58,8 +58,11 @@ def run(args: argparse.Namespace) -> int:
             table.add_column(col)
         for name, params in info[kind].items():
             for i, p in enumerate(params):
+                rng = f"[{p['range'][0]:g}, {p['range'][1]:g}]"
+                if p.get("fit_range", p["range"]) != p["range"]:
+                    rng += f", fitted in [{p['fit_range'][0]:g}, {p['fit_range'][1]:g}]"
                 table.add_row(name if i == 0 else "", p["name"], f"{p['default']:g}", p.get("transform", "linear"),
-                              f"[{p['range'][0]:g}, {p['range'][1]:g}]", p["units"], p["description"])
+                              rng, p["units"], p["description"])
         console.print(table)
     console.print("renderers: " + ", ".join(info["renderers"]))
     if "strategies" in info:

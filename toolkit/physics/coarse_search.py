@@ -69,11 +69,11 @@ DEFAULT_REFINEMENTS = 2
 MIN_GAIN = 0.01
 
 
-def search_axis(p: MaterialParam) -> tuple[bool, float, float, int]:
+def search_axis(p: MaterialParam, fit_bounds: Optional[tuple[float, float]] = None) -> tuple[bool, float, float, int]:
     """The sweep of one parameter: ``(log, low, high, points)`` in its search coordinate.
 
     ``log`` True means the coordinate is log10 of the physical value; the physical range is
-    ``p.search``.
+    ``p.search``, narrowed to ``fit_bounds`` (the fit's range, physical) where they overlap.
 
     Raises:
         ValueError: ``p`` has no search range.
@@ -82,6 +82,8 @@ def search_axis(p: MaterialParam) -> tuple[bool, float, float, int]:
         raise ValueError(f"parameter {p.name!r} has no search range (MaterialParam.search): it is not searched")
     log_axis = p.transform == "log10"
     lo, hi = p.search
+    if fit_bounds is not None and max(lo, fit_bounds[0]) < min(hi, fit_bounds[1]):
+        lo, hi = max(lo, fit_bounds[0]), min(hi, fit_bounds[1])
     if log_axis:
         lo, hi = math.log10(lo), math.log10(hi)
         n = max(2, int(round((hi - lo) / LOG10_STEP)) + 1)
@@ -136,7 +138,8 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     window = min(stage.frames or module.input.n_train, module.input.n_train)
     picked = score_frames(window, frames)
     cams = list(module.input.train_cameras)
-    axes = {n: search_axis(mat.param(n)) for n in names}
+    fit_bounds = getattr(module, "fit_bounds", {})
+    axes = {n: search_axis(mat.param(n), fit_bounds.get(n)) for n in names}
     base_phys = module.material_params().detach().clone()
     index = {n: mat.param_names.index(n) for n in names}
     start = {n: float(base_phys[index[n]]) for n in names}
