@@ -109,9 +109,12 @@ class MaterialParam:
         return lo, hi
 
     def raw_fit_bounds(self, bounds: tuple[float, float]) -> tuple[float, float]:
-        """``bounds`` (physical) in the raw space; an end at the valid range's edge (which the
-        transform cannot pass anyway) is left open (``-inf`` / ``inf``)."""
+        """``bounds`` (physical) as the interval of raw values a fit may take. ``linear``: the
+        bounds within the valid range; ``log10``/``tanh``: an end at the valid range's edge
+        (which the transform cannot pass anyway) is left open (``-inf`` / ``inf``)."""
         lo, hi = bounds
+        if self.transform == "linear":
+            return max(float(lo), self.low), min(float(hi), self.high)
         at_low = lo <= self.low or (self.transform == "log10" and lo <= 0)
         at_high = hi >= self.high
         rlo = -math.inf if at_low else float(self.to_raw(lo))

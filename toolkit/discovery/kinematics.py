@@ -117,13 +117,16 @@ def _design(t: np.ndarray, model: str, knot: Optional[float] = None) -> np.ndarr
         return np.stack([one, t], 1)
     if model == "parabola":
         return np.stack([one, t, 0.5 * t * t], 1)
+    if model == "drag":  # the knot is the drag rate k (1/s): y0 + v0 (1 - exp(-k t)) / k
+        return np.stack([one, t if knot <= 0 else -np.expm1(-knot * t) / knot], 1)
     return np.stack([one, t, np.maximum(t - knot, 0.0)], 1)  # segments: a slope change at the knot
 
 
 def _fit(t: np.ndarray, y: np.ndarray, model: str) -> tuple[np.ndarray, Optional[float], float]:
     """Least squares of ``y`` (T, D) on ``t`` (T,): ``(coefficients, knot, rss)``; for
-    ``segments`` the knot is the interior time that fits best."""
-    knots = [None] if model != "segments" else list(t[1:-1])
+    ``segments`` the knot is the interior time that fits best, for ``drag`` the rate of
+    :data:`DRAG_RATES` that fits best (one rate for every column)."""
+    knots = {"segments": list(t[1:-1]), "drag": [float(k) for k in DRAG_RATES]}.get(model, [None])
     best = None
     for knot in knots:
         A = _design(t, model, knot)
@@ -134,13 +137,14 @@ def _fit(t: np.ndarray, y: np.ndarray, model: str) -> tuple[np.ndarray, Optional
     return best
 
 
-def loo_errors(t: np.ndarray, y: np.ndarray) -> dict[str, float]:
-    """Leave-one-frame-out RMS prediction error (units of ``y``) of the line, the parabola and two
-    segments fitted to ``y`` (T, D) against times ``t`` (T,). Each model is refitted without the
-    frame it predicts (segments choose their knot again each time)."""
+def loo_errors(t: np.ndarray, y: np.ndarray, models: Sequence[str] = ("line", "parabola", "segments")) -> dict[str, float]:
+    """Leave-one-frame-out RMS prediction error (units of ``y``) of each of ``models`` (the line,
+    the parabola, two segments; ``drag`` on request) fitted to ``y`` (T, D) against times ``t``
+    (T,). Each model is refitted without the frame it predicts (segments choose their knot, the
+    drag its rate, again each time)."""
     out = {}
     T = len(t)
-    for model in ("line", "parabola", "segments"):
+    for model in models:
         err = []
         for k in range(T):
             keep = np.arange(T) != k
@@ -151,24 +155,6 @@ def loo_errors(t: np.ndarray, y: np.ndarray) -> dict[str, float]:
             err.append(float(((pred - y[k:k + 1]) ** 2).sum()))
         out[model] = float(np.sqrt(np.mean(err) / y.shape[1])) if err else float("inf")
     return out
-
-
-def _drag_design(t: np.ndarray, k: float) -> np.ndarray:
-    e = t if k <= 0 else -np.expm1(-k * t) / k
-    return np.stack([np.ones_like(t), e], 1)
-
-
-def _fit_drag(t: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
-    """Least squares of ``y`` (T, D) by ``x0 + v0 (1 - exp(-k t)) / k`` with one rate ``k`` for
-    every column (scanned over :data:`DRAG_RATES`): ``(k, coefficients (2, D))``."""
-    best = None
-    for k in DRAG_RATES:
-        A = _drag_design(t, float(k))
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        rss = float(((A @ coef - y) ** 2).sum())
-        if best is None or rss < best[0]:
-            best = (rss, float(k), coef)
-    return best[1], best[2]
 
 
 def force_law(times: np.ndarray, y: np.ndarray, factor: float = BEND_FACTOR) -> tuple[str, dict[str, float], float]:
@@ -184,20 +170,14 @@ def force_law(times: np.ndarray, y: np.ndarray, factor: float = BEND_FACTOR) -> 
     y = np.asarray(y, np.float64)
     if len(t) < MIN_PHASE_FRAMES:
         return "either", {}, float("nan")
-    err_c, err_d = [], []
-    for i in range(len(t)):
-        keep = np.arange(len(t)) != i
-        coef, _, _ = _fit(t[keep], y[keep], "parabola")
-        err_c.append(float(((_design(t[i:i + 1], "parabola") @ coef - y[i:i + 1]) ** 2).sum()))
-        k, cd = _fit_drag(t[keep], y[keep])
-        err_d.append(float(((_drag_design(t[i:i + 1], k) @ cd - y[i:i + 1]) ** 2).sum()))
-    loo = {"constant": float(np.sqrt(np.mean(err_c) / y.shape[1])), "drag": float(np.sqrt(np.mean(err_d) / y.shape[1]))}
+    e = loo_errors(t, y, ("parabola", "drag"))
+    loo = {"constant": e["parabola"], "drag": e["drag"]}
     law = "either"
     if loo["constant"] * factor <= loo["drag"]:
         law = "constant"
     elif loo["drag"] * factor <= loo["constant"]:
         law = "drag"
-    return law, loo, _fit_drag(t, y)[0]
+    return law, loo, float(_fit(t, y, "drag")[1])
 
 
 def fit_motion(centroids: np.ndarray, times: np.ndarray, gravity: Sequence[float],
@@ -264,17 +244,19 @@ def observed_motion(lib, q: np.ndarray, frames: Optional[Sequence[int]] = None) 
     except Exception as exc:  # no estimate is no reason to stop discovery
         log.info("no leading phase: %s", exc)
         return None
-    fl = [f for f in fl if len(inp.surfaces[f])]
+    lf = [f for f in frames if len(inp.surfaces[f])]  # the law's frames; the phase's are among them
+    fl = [f for f in fl if f in lf]
     if len(fl) < MIN_PHASE_FRAMES:
         return None
-    c = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in fl])
-    t = np.array([float(inp.times[f]) for f in fl]) - float(inp.times[0])
+    centroid = {f: inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in lf}
+    t0 = float(inp.times[0])
+    c = np.stack([centroid[f] for f in fl])
+    t = np.array([float(inp.times[f]) for f in fl]) - t0
     g = lib.gravity(q).detach().double().cpu().numpy()
     motion = fit_motion(c, t, g, frames=fl, phase=phase)
-    lf = [f for f in frames if len(inp.surfaces[f])]
-    if motion is not None and len(lf) >= MIN_PHASE_FRAMES:
-        cl = np.stack([inp.surfaces[f].detach().double().cpu().numpy().mean(0) for f in lf])
-        tl = np.array([float(inp.times[f]) for f in lf]) - float(inp.times[0])
+    if motion is not None:
+        cl = np.stack([centroid[f] for f in lf])
+        tl = np.array([float(inp.times[f]) for f in lf]) - t0
         motion.law, motion.law_loo, motion.drag_rate = force_law(tl, cl[:, [0, 2]])
         motion.law_frames = lf
     return motion

@@ -43,7 +43,7 @@ from toolkit.discovery.calibration import DEFAULT_THRESHOLDS, Thresholds
 from toolkit.discovery.candidates import ELASTIC_MATERIALS, library
 from toolkit.discovery.confirm import Refit, lm_refit
 from toolkit.discovery.gap import evaluate_state, gap_shrink, ground_truth_clouds
-from toolkit.discovery.kinematics import observed_motion, preferred_candidates
+from toolkit.discovery.kinematics import law_sentence, observed_motion, preferred_candidates
 from toolkit.discovery.library import LibraryModel
 from toolkit.discovery.ranking import Ranking, rank_candidates
 from toolkit.discovery.refits import final_refit, refit_candidate
@@ -450,8 +450,6 @@ def _verdict(decision, kind, indist, final, gap, validation, loc, separation=(),
         why = (f" Chosen among them because the observed {where} (frames {motion.frames[0]}-{motion.frames[-1]}) "
                f"bends {bend}.")
         if motion.shape == "smooth" and motion.law != "either":
-            from toolkit.discovery.kinematics import law_sentence
-
             why += law_sentence(motion.to_dict())
     return (f"Missing effect: {decision} ({s}){extra}, improving the held-out data by "
             f"{100 * validation[decision]['validation']:.0f} %{tail}.{why}{sep}")

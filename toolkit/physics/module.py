@@ -300,13 +300,9 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         with torch.no_grad():
             for n, raw in self.material_raw.items():
                 p = self.material.param(n)
-                lo, hi = self.fit_bounds.get(n, (p.low, p.high))
-                if p.transform == "linear":
-                    raw.clamp_(min=max(p.low, lo), max=min(p.high, hi))
-                else:
-                    rlo, rhi = p.raw_fit_bounds((lo, hi))
-                    if math.isfinite(rlo) or math.isfinite(rhi):
-                        raw.clamp_(min=rlo, max=rhi)
+                rlo, rhi = p.raw_fit_bounds(self.fit_bounds.get(n, (p.low, p.high)))
+                if math.isfinite(rlo) or math.isfinite(rhi):
+                    raw.clamp_(min=rlo, max=rhi)
 
     def estimate(self) -> dict:
         """Current estimate: material parameters (physical), v0, gravity, effects."""

@@ -205,14 +205,11 @@ def _parameters(module) -> list[_Param]:
         mean = float(module.material_raw_fixed[i])
         std = PRIOR_STD.get(p.transform) or max(abs(mean), 1.0)
         # probes and interval ends stay inside the fit range (the valid range unless narrower)
-        lo, hi = getattr(module, "fit_bounds", {}).get(n, (p.low, p.high))
+        rlo, rhi = p.raw_fit_bounds(getattr(module, "fit_bounds", {}).get(n, (p.low, p.high)))
+        setter = (lambda v, t=t, rlo=rlo, rhi=rhi: t.data.fill_(min(max(v, rlo), rhi)))
         if p.transform == "linear":
-            lo, hi = max(lo, p.low), min(hi, p.high)
-            setter = (lambda v, t=t, lo=lo, hi=hi: t.data.fill_(min(max(v, lo), hi)))
-            physical = (lambda v, lo=lo, hi=hi: float(min(max(v, lo), hi)))
+            physical = (lambda v, rlo=rlo, rhi=rhi: float(min(max(v, rlo), rhi)))
         else:
-            rlo, rhi = p.raw_fit_bounds((lo, hi))
-            setter = (lambda v, t=t, rlo=rlo, rhi=rhi: t.data.fill_(min(max(v, rlo), rhi)))
             physical = (lambda v, p=p, rlo=rlo, rhi=rhi: float(p.to_physical(torch.tensor(min(max(v, rlo), rhi)))))
         out.append(_Param(n, p.transform, mean, std, (lambda t=t: float(t.detach())), setter, physical))
     v0_init = getattr(module, "v0_start", None) or module.hparams.get("v0_init") or [0.0, 0.0, 0.0]
