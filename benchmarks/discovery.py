@@ -27,6 +27,9 @@ Usage::
     python benchmarks/discovery.py --shard 0/4 --out D                                  #   then the hidden scenes, 4 processes
     python benchmarks/discovery.py --report-only --out outputs/discovery --update-docs    # merge and tabulate
     python benchmarks/discovery.py --geometry stage0 --calibrate --out outputs/discovery_images   # from images
+    python benchmarks/discovery.py --geometry stage0 --stage0-seed 1 --calibrate --out outputs/discovery_images_s1
+    python benchmarks/discovery_runs.py s0=outputs/discovery_images s1=outputs/discovery_images_s1 --calibrate
+                                                          # the same suite's decisions over two stage-0 runs
 
 From images (``--geometry stage0``): each scene's geometry comes from stage 0 + the continuum
 (:mod:`toolkit.discovery.from_images`; schedule ``--stage0``, default
@@ -114,7 +117,7 @@ def run_scene(hs, args, thresholds) -> dict:
         # stage 0 + continuum in RUN/images (resumable, shared by every candidate); the input with
         # the scene's observation errors applied is RUN/physics_input.pt
         inp = stage0_physics_input(hs, root, run / "images", stage0=_stage0_arg(args.stage0) if args.stage0 else None,
-                                   device=args.stage0_device or args.device)
+                                   device=args.stage0_device or args.device, seed=args.stage0_seed)
     else:
         inp = hs.physics_input(root)
     t_stage0 = time.time() - t0
@@ -134,7 +137,8 @@ def run_scene(hs, args, thresholds) -> dict:
     errors = {k: abs(final[k] - v) for k, v in truth.items() if k in final} if res.decision == hs.expected else {}
     order = _order(d)
     rec = {
-        "scene": hs.name, "geometry": args.geometry, "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
+        "scene": hs.name, "geometry": args.geometry, "stage0_seed": args.stage0_seed if args.geometry == "stage0" else None,
+        "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
         "expected": hs.expected, "decision": res.decision, "kind": res.decision_kind, "indistinguishable": res.indistinguishable,
         "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence")} for d in res.separation],
         "joint": res.joint, "floors": res.floors, "noise": res.noise, "motion": res.motion,
@@ -287,10 +291,15 @@ def _truth(v: dict, k: str) -> str:
 
 
 def _decide(rec: dict, thr):
-    """The decision of a stored record under thresholds ``thr`` (noise and single camera when recorded)."""
+    """The decision of a stored record under thresholds ``thr``, as :func:`toolkit.discovery.discover`
+    made it: with the noise, the single camera and the observed motion's preference among tied
+    candidates, when recorded."""
+    from toolkit.discovery.kinematics import ObservedMotion, preferred_candidates
     from toolkit.discovery.workflow import decide
 
-    return decide(rec["validation"], rec["dofs"], thr, noise=rec.get("noise"), single_camera=rec.get("single_camera"))
+    motion = ObservedMotion.from_dict(rec["motion"]) if rec.get("motion") else None
+    return decide(rec["validation"], rec["dofs"], thr, noise=rec.get("noise"), single_camera=rec.get("single_camera"),
+                  prefer=preferred_candidates(motion, list(rec["validation"])))
 
 
 def _stage0_arg(text: str):
@@ -334,6 +343,10 @@ def main(argv=None) -> int:
     p.add_argument("--stage0-device", default=None,
                    help="device of stage 0 and the continuum with --geometry stage0 (default: --device); e.g. cuda with "
                         "--device cpu: the images' Gaussians on the GPU, the ~400-particle physics on the CPU cores")
+    p.add_argument("--stage0-seed", type=int, default=0,
+                   help="stage 0's seed with --geometry stage0 (its initial Gaussians, frame order and batches); another "
+                        "seed is another run of the same scenes, for decisions measured over several runs "
+                        "(benchmarks/discovery_runs.py); one OUT folder holds one seed")
     p.add_argument("--levels", nargs="+", default=["medium", "high"])
     p.add_argument("--materials", nargs="+", default=["neo_hookean", "plasticine"])
     p.add_argument("--throws", nargs="+", default=["slide", "toss"])
@@ -391,6 +404,10 @@ def main(argv=None) -> int:
         for line in f.read_text().splitlines():
             if line.strip():
                 r = json.loads(line)
+                seed = r.get("stage0_seed")
+                if not args.report_only and seed is not None and args.geometry == "stage0" and seed != args.stage0_seed:
+                    p.error(f"{f}: scene {r['scene']} ran with --stage0-seed {seed}, not {args.stage0_seed}; "
+                            "give each seed its own --out")
                 done[r["scene"]] = r
     if not args.report_only:
         mine = [hs for k, hs in enumerate(sorted(suite, key=lambda h: h.effect != "none")) if k % n == i]

@@ -7,6 +7,10 @@
 # Shards run in the background (logs in OUT/logs); when every shard has exited, tabulate with
 #   python benchmarks/discovery.py --report-only --calibrate --geometry stage0 --stage0 "$(cat OUT/stage0.json)" --out OUT
 # A rerun skips finished scenes (OUT/results_*.jsonl) and reuses finished stage 0s.
+# Environment: SEED (stage 0's seed, default 0; one OUT per seed, compared by
+# benchmarks/discovery_runs.py), THRESHOLDS (a thresholds JSON used while running, e.g. those
+# calibrated on an earlier run's null scenes; default: the shipped ones; --report-only
+# --calibrate decides again on this run's null scenes either way).
 set -eu
 OUT=${1:?usage: discovery_from_images.sh OUT [SHARDS] [STAGE0_ITERATIONS]}
 N=${2:-60}
@@ -19,9 +23,14 @@ if [ "$NG" -lt 1 ]; then
   echo "no GPU found (nvidia-smi -L): stage 0 at full size needs one" >&2
   exit 2
 fi
+EXTRA=(--stage0-seed "${SEED:-0}")
+if [ -n "${THRESHOLDS:-}" ]; then
+  [ -f "$THRESHOLDS" ] || { echo "THRESHOLDS=$THRESHOLDS: no such file (expected a thresholds JSON)" >&2; exit 2; }
+  EXTRA+=(--thresholds "$THRESHOLDS")
+fi
 for i in $(seq 0 $((N - 1))); do
   CUDA_VISIBLE_DEVICES=$((i % NG)) OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 setsid nohup python benchmarks/discovery.py \
-    --geometry stage0 --stage0 "$S0" --stage0-device cuda --device cpu --no-reports --shard "$i/$N" --out "$OUT" \
+    --geometry stage0 --stage0 "$S0" --stage0-device cuda --device cpu --no-reports --shard "$i/$N" --out "$OUT" "${EXTRA[@]}" \
     > "$OUT/logs/shard_$i.log" 2>&1 < /dev/null &
 done
 echo "launched $N shards on $NG GPUs and $(nproc) cores; logs in $OUT/logs"

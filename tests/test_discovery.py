@@ -362,3 +362,79 @@ def test_discovery_benchmark_refuses_a_bad_device_before_any_work(tmp_path, caps
         assert exc.value.code == 2
         assert f"{option} must be cpu, cuda or cuda:N; got 'gpu'" in capsys.readouterr().err
     assert not out.exists()
+
+
+def _bench_module(name: str):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_discovery_runs_counts_a_scene_as_named_only_when_every_run_names_it():
+    """Two runs of the same scenes: the stable rate counts a scene whose effect the data show in
+    both runs as named only if both runs name it; a null scene flagged once is listed; a scene that
+    shows its effect in one run only, or ran in one run only, is left out of the stable rate."""
+    runs_mod = _bench_module("discovery_runs")
+
+    def rec(scene, effect, decision, truth_shrink):
+        return {"scene": scene, "effect": effect, "expected": None if effect == "none" else effect, "decision": decision,
+                "shrink": truth_shrink}
+
+    a = [rec("drag", "air_drag", "air_drag", 0.9), rec("wall", "wall", "wall", 0.8), rec("null", "none", None, None),
+         rec("weak", "internal_damping", None, 0.6), rec("once", "wall", "wall", 0.9)]
+    b = [rec("drag", "air_drag", "ground_friction", 0.9), rec("wall", "wall", "wall", 0.7), rec("null", "none", "wall", None),
+         rec("weak", "internal_damping", None, 0.1)]
+    cmp = runs_mod.compare({"A": a, "B": b}, lambda r: r["shrink"])
+    assert cmp["in_every_run"] == 4 and cmp["observable_every_run"] == ["drag", "wall"]
+    assert cmp["named_every_run"] == 0.5 and cmp["named_some_run"] == 1.0
+    assert cmp["named_every_run_scenes"] == ["wall"]
+    assert cmp["unstable"] == ["drag", "null"]
+    assert cmp["null_scenes"] == 1 and cmp["null_flagged_any"] == ["null"]
+
+
+def test_discovery_benchmark_refuses_to_mix_stage0_seeds_in_one_folder(tmp_path, capsys):
+    """A run folder holds one stage-0 seed: resuming it with another seed stops before any work,
+    naming the file, the scene and both seeds."""
+    bench = _bench_module("discovery")
+    out = tmp_path / "D"
+    out.mkdir()
+    (out / "results.jsonl").write_text(json.dumps({"scene": "none-none-neo_hookean-slide-s0", "effect": "none",
+                                                   "stage0_seed": 0}) + "\n")
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--geometry", "stage0", "--stage0-seed", "1", "--null", "1", "--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "results.jsonl" in err and "none-none-neo_hookean-slide-s0" in err and "--stage0-seed 0, not 1" in err
+    assert sorted(p.name for p in out.iterdir()) == ["results.jsonl"]
+
+
+def test_discovery_report_decides_a_tie_as_the_run_did_with_its_observed_motion():
+    """A stored record whose tie the observed motion settled: the benchmark's report decides it the
+    same way (the smooth, constant pull prefers the extra acceleration over the wall, which
+    parsimony alone would pick), and the motion survives a round trip through its dict."""
+    from toolkit.discovery.calibration import Thresholds
+    from toolkit.discovery.kinematics import ObservedMotion
+
+    bench = _bench_module("discovery")
+    motion = ObservedMotion(frames=[1, 2, 3, 4, 5], acceleration=np.array([-4.0, -9.8, 2.0]), extra=np.array([-4.0, 0.0, 2.0]),
+                            v0=np.array([1.5, 0.0, 0.3]), shape="smooth", loo={"line": 0.01, "parabola": 0.001, "segments": 0.004},
+                            phase="slide", law="constant", law_loo={"constant": 0.0014, "drag": 0.016}, drag_rate=3.0,
+                            law_frames=[1, 2, 3, 4, 5, 6, 7])
+    back = ObservedMotion.from_dict(json.loads(json.dumps(motion.to_dict())))
+    assert back.to_dict() == motion.to_dict()
+
+    def v(val):
+        return {"validation": val, "fit": 0.05, "control": False, "worst": 0.0}
+
+    thr = Thresholds(validation=0.06, fit=0.0, camera=0.1, source="test")
+    rec = {"validation": {"base": v(0.0), "extra_acceleration": v(0.30), "wall": v(0.29)},
+           "dofs": {"extra_acceleration": 3, "wall": 2}, "noise": None, "single_camera": None}
+    assert bench._decide({**rec, "motion": None}, thr)[0] == "wall"  # parsimony alone
+    assert bench._decide({**rec, "motion": motion.to_dict()}, thr)[:2] == ("extra_acceleration", "physics")
+    old = {k: v for k, v in motion.to_dict().items() if k not in ("law", "law_loo", "drag_rate", "law_frames")}
+    assert ObservedMotion.from_dict(old).law == "either"  # a record from before the force law

@@ -110,6 +110,16 @@ class ObservedMotion:
                 "drag_rate": None if self.drag_rate is None else float(self.drag_rate),
                 "law_frames": list(self.law_frames)}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "ObservedMotion":
+        """The motion :meth:`to_dict` wrote (a stored discovery record's ``motion``); fields a
+        record written before they existed lack take their defaults."""
+        return cls(frames=list(d["frames"]), acceleration=np.asarray(d["acceleration"], dtype=float),
+                   extra=np.asarray(d["extra"], dtype=float), v0=np.asarray(d["v0"], dtype=float), shape=d["shape"],
+                   loo=dict(d.get("loo") or {}), kink_frame=d.get("kink_frame"), phase=d.get("phase", "flight"),
+                   law=d.get("law", "either"), law_loo=dict(d.get("law_loo") or {}), drag_rate=d.get("drag_rate"),
+                   law_frames=list(d.get("law_frames") or []))
+
 
 def _design(t: np.ndarray, model: str, knot: Optional[float] = None) -> np.ndarray:
     one = np.ones_like(t)
