@@ -438,3 +438,60 @@ def test_discovery_report_decides_a_tie_as_the_run_did_with_its_observed_motion(
     assert bench._decide({**rec, "motion": motion.to_dict()}, thr)[:2] == ("extra_acceleration", "physics")
     old = {k: v for k, v in motion.to_dict().items() if k not in ("law", "law_loo", "drag_rate", "law_frames")}
     assert ObservedMotion.from_dict(old).law == "either"  # a record from before the force law
+
+
+def test_consensus_of_several_runs():
+    """All runs agree: that name (with the candidates any run tied to it); one run names an effect
+    and another none: not named; different names: not named, with the counts."""
+    from toolkit.discovery.consensus import consensus, consensus_markdown
+
+    a = {"decision": "ground_friction", "indistinguishable": ["air_drag"],
+         "separation": [{"sentence": "a longer clip would separate them"}]}
+    b = {"decision": "ground_friction", "indistinguishable": [], "separation": []}
+    c = consensus([a, b], ["A", "B"])
+    assert c.agreed and c.decision == "ground_friction" and c.counts == {"ground_friction": 2}
+    assert c.tied == ["air_drag"] and c.separation == ["a longer clip would separate them"]
+    assert c.sentence.startswith("All 2 runs name ground_friction") and "air_drag" in c.sentence
+    none = {"decision": None}
+    c = consensus([a, none, b], ["A", "N", "B"])
+    assert not c.agreed and c.decision is None and c.counts == {"ground_friction": 2, "none": 1}
+    assert "named in 2 of 3 runs" in c.sentence and "not named" in c.sentence
+    c = consensus([a, {"decision": "wall"}], ["A", "W"])
+    assert not c.agreed and c.decision is None and "disagree" in c.sentence and "wall (1 of 2 runs)" in c.sentence
+    assert consensus([none, none], ["A", "B"]).sentence == "No run finds a missing effect (2 runs)."
+    md = consensus_markdown(c, ["verdict A", "verdict W"])
+    assert "| W | wall |" in md and "- `A`: verdict A" in md
+    with pytest.raises(ValueError, match="at least two runs"):
+        consensus([a], ["A"])
+
+
+def test_discover_command_on_two_runs_of_one_scene(runs, tmp_path):
+    """``projo4d discover A B`` on two copies of one run: each gets its discovery, and the consensus
+    names the effect both name; runs of different scenes and a folder given twice are refused
+    before any work."""
+    import shutil
+
+    from toolkit.cli import main
+
+    r = runs("ground_friction")
+    a, b = tmp_path / "A", tmp_path / "B"
+    for d in (a, b):
+        shutil.copytree(r.run, d, ignore=shutil.ignore_patterns("discovery*"))
+    opts = ["--candidates", "ground_friction", "air_drag", "--top-k", "2", "--iterations", "3", "--final-iterations", "3",
+            "--no-emd"]
+    assert main(["discover", str(a), str(b), *opts]) == 0
+    c = json.loads((a / "discovery_consensus" / "consensus.json").read_text())
+    assert c["agreed"] and c["decision"] == "ground_friction" and c["decisions"] == ["ground_friction"] * 2
+    for d in (a, b):
+        assert json.loads((d / "discovery" / "discovery.json").read_text())["decision"] == "ground_friction"
+
+    def error(*argv):
+        with pytest.raises(SystemExit) as exc:
+            main(["discover", *map(str, argv), *opts])
+        return str(exc.value)
+
+    (a / "run.json").write_text(json.dumps({"scene": "/data/one", "scene_fingerprint": "aaa"}))
+    (b / "run.json").write_text(json.dumps({"scene": "/data/two", "scene_fingerprint": "bbb"}))
+    assert "runs of different scenes (/data/one and /data/two)" in error(a, b)
+    assert "given twice" in error(a, a)
+    assert "has no physics_input.pt" in error(a, tmp_path)

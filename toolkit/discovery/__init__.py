@@ -25,7 +25,8 @@ Modules, one job each:
 * :mod:`~toolkit.discovery.loading`: a fitted module from a run folder;
 * :mod:`~toolkit.discovery.hidden`: scenes with a hidden effect (tests, benchmark);
 * :mod:`~toolkit.discovery.from_images`: their geometry from stage 0, held still in the physics;
-* :mod:`~toolkit.discovery.commands`: ``projo4d discover RUN_DIR``.
+* :mod:`~toolkit.discovery.consensus`: whether several runs of one scene name the same effect;
+* :mod:`~toolkit.discovery.commands`: ``projo4d discover RUN_DIR [RUN_DIR ...]``.
 """
 
 from __future__ import annotations
