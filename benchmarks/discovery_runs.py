@@ -89,8 +89,9 @@ def compare(runs: dict[str, list[dict]], truth_shrink, controls=("density", "cam
     unknown); the data show a scene's effect in a run when it is at least 0.5. Returns ``scenes``
     (per scene: ``expected``, ``decisions`` and ``shows`` per run), ``in_every_run`` (how many
     scenes ran in every run), ``observable_every_run`` (those of them whose effect the data show
-    in each run),
-    ``named_every_run`` / ``named_some_run`` (their fractions named in every / at least one run),
+    in each run), ``named_every_run`` / ``named_some_run`` (their fractions named in every / at
+    least one run; the first is what ``projo4d discover RUN_A RUN_B`` names,
+    :func:`toolkit.discovery.consensus.consensus`),
     ``unstable`` (scenes decided differently by two runs) and ``null_flagged_any`` (null scenes
     flagged by at least one run).
     """
