@@ -495,3 +495,20 @@ def test_discover_command_on_two_runs_of_one_scene(runs, tmp_path):
     assert "runs of different scenes (/data/one and /data/two)" in error(a, b)
     assert "given twice" in error(a, a)
     assert "has no physics_input.pt" in error(a, tmp_path)
+
+
+def test_discovery_from_images_script_refuses_bad_settings_before_any_work(tmp_path):
+    """``benchmarks/discovery_from_images.sh`` stops with exit status 2 on a bad ``RANGE`` or a
+    missing ``THRESHOLDS`` file, naming it, and writes nothing."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "discovery_from_images.sh"
+    out = tmp_path / "D"
+    for env, text in (({"RANGE": "5:2"}, "RANGE=5:2: expected A:B with 0 <= A < B <= 60"),
+                      ({"RANGE": "0:61"}, "RANGE=0:61"),
+                      ({"THRESHOLDS": str(tmp_path / "none.json")}, "no such file (expected a thresholds JSON)")):
+        p = subprocess.run(["bash", str(script), str(out), "60"], env={**os.environ, **env}, capture_output=True, text=True)
+        assert p.returncode == 2 and text in p.stderr
+    assert not out.exists()
