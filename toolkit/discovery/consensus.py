@@ -100,7 +100,7 @@ def consensus(results: Sequence[dict], runs: Sequence[str]) -> Consensus:
 def consensus_markdown(c: Consensus, verdicts: Optional[Sequence[str]] = None) -> str:
     """A short report: the sentence, then each run's decision (and verdict, when given)."""
     lines = ["# Discovery over several runs", "", c.sentence, "", "| run | decision |", "|---|---|"]
-    for k, (run, d) in enumerate(zip(c.runs, c.decisions)):
+    for run, d in zip(c.runs, c.decisions):
         lines.append(f"| {run} | {'no missing effect' if d is None else d} |")
     if c.separation:
         lines += ["", "What would separate tied candidates, as the runs said:", ""] + [f"- {s}" for s in c.separation]
