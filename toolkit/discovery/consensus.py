@@ -2,8 +2,8 @@
 
 Stage 0 on a GPU is not bit-reproducible (atomic accumulation order), and the geometry it gives,
 the base fit and the candidates' refits move with it. On the full-size benchmark from images a
-scene's decision changed between two runs more often than not (of 5 scenes whose effect the data
-show in both runs, 1 was named in both, 4 in at least one: ``docs/tutorials/discovery.md``). So a
+scene's decision changed between two runs more often than not (of 8 scenes whose effect the data
+show in both runs, 1 was named in both, 5 in at least one: ``docs/tutorials/discovery.md``). So a
 name is worth checking on a second run of the scene (``projo4d run --seed 1``), and
 ``projo4d discover RUN_A RUN_B`` runs discovery on each and reports :func:`consensus`:
 
