@@ -661,6 +661,8 @@ def test_export_bundles_the_results(bench, tmp_path):
         members = tar.getnames()
     assert "runs/neo_hookean/000/cams3/progressive/summary.json" in members
     assert "runs/neo_hookean/000/cams3/progressive/physics/history.json" in members
+    searches = sorted(str(p.relative_to(bench["out"])) for p in bench["out"].glob("runs/**/material_search.json"))
+    assert searches and set(searches) <= set(members)  # the coarse search's record comes back with the fit
     assert all(os.path.getsize(tmp_path / "x" / n) < 16 * 2**20 for n in names)
 
 

@@ -157,9 +157,9 @@ def _write_suite_index(spec) -> None:
 
 def _export(bench: Path, export: Path, emit, budget: int = 15 * 2**20) -> list[Path]:
     """Copy what the write-up needs into ``export`` as 4 files: tables.md, tables.json,
-    progress.jsonl and results.tar.gz (the plan, the run summaries, evaluations, histories and
-    markers, then figures while they fit in ``budget`` bytes: a lent GPU machine brings back files
-    of at most 16 MiB)."""
+    progress.jsonl and results.tar.gz (the plan, the run summaries, evaluations, histories, the
+    coarse searches' records and markers, then figures while they fit in ``budget`` bytes: a
+    lent GPU machine brings back files of at most 16 MiB)."""
     import tarfile
 
     export.mkdir(parents=True, exist_ok=True)
@@ -170,7 +170,8 @@ def _export(bench: Path, export: Path, emit, budget: int = 15 * 2**20) -> list[P
             shutil.copy2(src, export / Path(name).name)
             files.append(export / Path(name).name)
     groups = [["benchmark.json", "runs/**/summary.json", "runs/**/job.json", "scenes/**/job.json", "scenes/**/settings.json",
-               "runs/**/evaluation/evaluation.json", "runs/**/physics/estimate.json", "runs/**/physics/history.json"],
+               "runs/**/evaluation/evaluation.json", "runs/**/physics/estimate.json", "runs/**/physics/history.json",
+               "runs/**/material_search.json"],
               ["tables/*.png"], ["tables/*.mp4"], ["runs/**/report/*.png"], ["tables/*.gif"]]
     members, skipped, used = [], 0, 0
     for i, patterns in enumerate(groups):
