@@ -302,6 +302,35 @@ def _decide(rec: dict, thr):
                   prefer=preferred_candidates(motion, list(rec["validation"])))
 
 
+def iter_records(out: Path):
+    """``(file, record)`` for every line of ``out/results*.jsonl``, in file order (a later line of
+    a scene replaces an earlier one where they are gathered); a line that is not JSON stops with
+    its file and line number."""
+    for f in sorted(Path(out).glob("results*.jsonl")):
+        for k, line in enumerate(f.read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            try:
+                yield f, json.loads(line)
+            except json.JSONDecodeError as err:
+                raise SystemExit(f"{f}:{k}: not a JSON line ({err})") from None
+
+
+def redecide(records: list[dict], thr) -> list[dict]:
+    """Copies of stored records decided again under ``thr`` (:func:`_decide`); a changed decision
+    drops the gap shrink, which belonged to another candidate's refit."""
+    out = []
+    for r in records:
+        r = dict(r)
+        runtime = r["decision"]
+        r["decision"], r["kind"], r["indistinguishable"] = _decide(r, thr)
+        r["correct"] = r["decision"] == r["expected"]
+        if r["decision"] != runtime:
+            r["cd_shrink"] = None
+        out.append(r)
+    return out
+
+
 def _stage0_arg(text: str):
     """``--stage0``: a preset name or JSON of Stage0Schedule fields."""
     return json.loads(text) if text.strip().startswith("{") else text
@@ -400,15 +429,12 @@ def main(argv=None) -> int:
     results_file = out / (f"results_{i}of{n}.jsonl" if n > 1 else "results.jsonl")
     suite = build_suite(args)
     done = {}
-    for f in out.glob("results*.jsonl"):
-        for line in f.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                seed = r.get("stage0_seed")
-                if not args.report_only and seed is not None and args.geometry == "stage0" and seed != args.stage0_seed:
-                    p.error(f"{f}: scene {r['scene']} ran with --stage0-seed {seed}, not {args.stage0_seed}; "
-                            "give each seed its own --out")
-                done[r["scene"]] = r
+    for f, r in iter_records(out):
+        seed = r.get("stage0_seed")
+        if not args.report_only and seed is not None and args.geometry == "stage0" and seed != args.stage0_seed:
+            p.error(f"{f}: scene {r['scene']} ran with --stage0-seed {seed}, not {args.stage0_seed}; "
+                    "give each seed its own --out")
+        done[r["scene"]] = r
     if not args.report_only:
         mine = [hs for k, hs in enumerate(sorted(suite, key=lambda h: h.effect != "none")) if k % n == i]
         nulls = [hs for hs in mine if hs.effect == "none"]
@@ -452,13 +478,7 @@ def main(argv=None) -> int:
     if not records:
         return 0
     # decisions are re-derived with the final thresholds (the stored statistics do not depend on them)
-
-    for r in records:
-        runtime = r["decision"]
-        r["decision"], r["kind"], r["indistinguishable"] = _decide(r, thresholds)
-        r["correct"] = r["decision"] == r["expected"]
-        if r["decision"] != runtime:  # the refit behind the gap numbers was another candidate's
-            r["cd_shrink"] = None
+    records = redecide(records, thresholds)
     summary = summarize(records, thresholds)
     title = "CPU smoke run (`--small`, tiny scenes)" if args.small else "GPU run (full-size scenes)"
     if args.geometry == "stage0":

@@ -46,40 +46,13 @@ def _benchmark():
     return mod
 
 
-def load_run(folder: Path) -> list[dict]:
-    """The finished records of one run folder (``results*.jsonl``; failed scenes left out); a later
-    line for the same scene replaces an earlier one."""
+def load_run(folder: Path, bench) -> list[dict]:
+    """The finished records of one run folder (``results*.jsonl``, read by the benchmark's
+    ``iter_records``; failed scenes left out); a later line for the same scene replaces an earlier one."""
     folder = Path(folder)
-    files = sorted(folder.glob("results*.jsonl"))
-    if not files:
+    if not any(folder.glob("results*.jsonl")):
         raise SystemExit(f"{folder}: no results*.jsonl (expected the --out folder of benchmarks/discovery.py)")
-    recs: dict[str, dict] = {}
-    for f in files:
-        for k, line in enumerate(f.read_text().splitlines(), 1):
-            if not line.strip():
-                continue
-            try:
-                r = json.loads(line)
-            except json.JSONDecodeError as err:
-                raise SystemExit(f"{f}:{k}: not a JSON line ({err})") from None
-            if "error" not in r:
-                recs[r["scene"]] = r
-    return list(recs.values())
-
-
-def redecide(records: list[dict], thresholds, bench) -> list[dict]:
-    """Copies of ``records`` decided again under ``thresholds`` (as ``discovery.py --report-only``:
-    a changed decision drops the gap shrink, which belonged to another candidate's refit)."""
-    out = []
-    for r in records:
-        r = dict(r)
-        runtime = r["decision"]
-        r["decision"], r["kind"], r["indistinguishable"] = bench._decide(r, thresholds)
-        r["correct"] = r["decision"] == r["expected"]
-        if r["decision"] != runtime:
-            r["cd_shrink"] = None
-        out.append(r)
-    return out
+    return list({r["scene"]: r for _, r in bench.iter_records(folder) if "error" not in r}.values())
 
 
 def compare(runs: dict[str, list[dict]], truth_shrink, controls=("density", "camera_pose")) -> dict:
@@ -178,7 +151,7 @@ def main(argv=None) -> int:
             p.error(f"run folder {folder!r} does not exist")
         if name in runs:
             p.error(f"two runs are named {name!r}; name them NAME=FOLDER")
-        runs[name] = load_run(Path(folder))
+        runs[name] = load_run(Path(folder), bench)
     if args.thresholds:
         thr = Thresholds.load(args.thresholds)
     elif args.calibrate:
@@ -188,7 +161,7 @@ def main(argv=None) -> int:
         thr = calibrate(stats, source=f"calibrated on {len(stats)} null scenes of {len(runs)} runs")
     else:
         thr = DEFAULT_THRESHOLDS
-    decided = {n: redecide(recs, thr, bench) for n, recs in runs.items()}
+    decided = {n: bench.redecide(recs, thr) for n, recs in runs.items()}
     per_run = {n: bench.summarize(recs, thr) for n, recs in decided.items()}
     for n, s in per_run.items():
         print(json.dumps({"run": n, "summary": s}), flush=True)

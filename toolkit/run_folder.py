@@ -32,8 +32,8 @@ from typing import Optional
 from toolkit.atomic import write_json
 from toolkit.run_validation import SettingsError
 
-__all__ = ["RUN_FILE", "scene_fingerprint", "run_identity", "claim_run_folder", "recorded_settings", "RUN_ARTIFACTS",
-           "STAGE0_SETTINGS"]
+__all__ = ["RUN_FILE", "scene_fingerprint", "run_identity", "claim_run_folder", "recorded_identity", "recorded_settings",
+           "RUN_ARTIFACTS", "STAGE0_SETTINGS"]
 
 RUN_FILE = "run.json"
 #: settings that never change results (excluded from the identity)
@@ -82,6 +82,18 @@ def _stage0_part(identity: dict) -> dict:
     settings = identity.get("settings", {})
     return {"scene": identity.get("scene"), "scene_fingerprint": identity.get("scene_fingerprint"), "stage": "stage0",
             "settings": {k: settings.get(k) for k in STAGE0_SETTINGS}}
+
+
+def recorded_identity(out: str | Path) -> Optional[dict]:
+    """The identity a run folder recorded (``run.json``: scene, scene fingerprint, settings), or None."""
+    path = Path(out) / RUN_FILE
+    if not path.is_file():
+        return None
+    try:
+        identity = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return identity if isinstance(identity, dict) else None
 
 
 def recorded_settings(out: str | Path) -> Optional[dict]:

@@ -52,17 +52,12 @@ def _same_scene(run_dirs) -> None:
     """Refuse run folders whose ``run.json`` records different scenes (folders without one pass)."""
     from pathlib import Path
 
-    import json
-
-    from toolkit.run_folder import RUN_FILE
+    from toolkit.run_folder import recorded_identity
 
     seen = {}
     for d in run_dirs:
-        try:
-            rec = json.loads((Path(d) / RUN_FILE).read_text())
-        except (OSError, ValueError):
-            rec = {}
-        fp = rec.get("scene_fingerprint") if isinstance(rec, dict) else None
+        rec = recorded_identity(Path(d)) or {}
+        fp = rec.get("scene_fingerprint")
         if fp is not None:
             seen.setdefault(fp, (d, rec.get("scene")))
     if len(seen) > 1:
