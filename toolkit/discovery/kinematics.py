@@ -38,6 +38,13 @@ Two uses in discovery (:mod:`toolkit.discovery.workflow`):
   less gravity, and its initial velocity. A first-order prediction from a base fit that absorbed
   the force (a slower throw) can point the wrong way; the observed flight does not depend on the
   base fit.
+* **a start for air drag's refit** (:func:`drag_start`): the linear drag rate the force law
+  fitted to the observed track. A base fit that absorbed a drag into a slower throw leaves air
+  drag's first-order score near zero, so its prediction starts the refit at no drag at all.
+
+Body forces are confirmed as a family (:func:`body_force_partners`): when the ranking sends one
+of them to a refit, the other is refitted too, so that the validation, not the first-order
+score of a base fit that absorbed the force, decides between a drag and a constant pull.
 
 Units: metres, seconds; the world frame of the physics input (gravity along its ``gravity``).
 """
@@ -52,7 +59,7 @@ import numpy as np
 
 __all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "CONSTANT_FORCES", "fit_motion",
            "force_law", "leading_phase", "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start",
-           "motion_sentence", "law_sentence"]
+           "drag_start", "body_force_partners", "motion_sentence", "law_sentence"]
 
 log = logging.getLogger(__name__)
 
@@ -285,6 +292,32 @@ def acceleration_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> 
     for a, v in zip("xyz", motion.v0):
         q[lib.index_of[f"v0.{a}"]] = v
     return lib.clip(q)
+
+
+def drag_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> Optional[np.ndarray]:
+    """``q`` with air drag's linear rate (1/s) at the drag rate the force law fitted to the
+    observed track (:attr:`ObservedMotion.drag_rate`), its quadratic rate at 0 and, in a flight,
+    v0 at the flight's; clipped to the library's bounds. ``None`` without a motion, without a
+    positive fitted rate, or without an air-drag candidate."""
+    if (motion is None or not motion.drag_rate or motion.drag_rate <= 0.0
+            or "air_drag.linear" not in lib.index_of):
+        return None
+    q = np.asarray(q, np.float64).copy()
+    q[lib.index_of["air_drag.linear"]] = float(motion.drag_rate)
+    if "air_drag.quadratic" in lib.index_of:
+        q[lib.index_of["air_drag.quadratic"]] = 0.0
+    if motion.phase == "flight":
+        for a, v in zip("xyz", motion.v0):
+            q[lib.index_of[f"v0.{a}"]] = v
+    return lib.clip(q)
+
+
+def body_force_partners(chosen: Sequence[str], available: Sequence[str]) -> list[str]:
+    """The body forces among ``available`` (in :data:`BODY_FORCES` order) not in ``chosen``,
+    when ``chosen`` holds at least one body force; else ``[]``."""
+    if not any(n in BODY_FORCES for n in chosen):
+        return []
+    return [n for n in BODY_FORCES if n in available and n not in chosen]
 
 
 def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str]) -> list[str]:

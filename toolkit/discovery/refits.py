@@ -5,7 +5,8 @@ scaled back to the best objective; the searched wall placement; the searched yie
 extra acceleration is refitted a second time from the observed flight
 (:func:`toolkit.discovery.kinematics.acceleration_start`) when the flight bends smoothly, and the
 better of the two (training objective) is kept: a base fit that absorbed the force can make the
-linear prediction point the wrong way.
+linear prediction point the wrong way. Air drag is likewise refitted a second time from the
+drag rate of the observed track (:func:`toolkit.discovery.kinematics.drag_start`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from toolkit.discovery.confirm import Refit, lm_refit
-from toolkit.discovery.kinematics import acceleration_start
+from toolkit.discovery.kinematics import acceleration_start, drag_start
 from toolkit.discovery.library import LibraryModel
 
 __all__ = ["refit_candidate", "final_refit", "start_point"]
@@ -69,13 +70,16 @@ def refit_candidate(lib: LibraryModel, plib: Optional[LibraryModel], state: dict
     q = start_point(lib, base, score)
     free = lib.base_names + lib.params_of(name)
     rf = lm_refit(lib, q, free, name, iterations=iterations)
-    if name == "extra_acceleration":
+    second = {"extra_acceleration": (acceleration_start, "observed_flight"),
+              "air_drag": (drag_start, "observed_drag_rate")}.get(name)
+    if second is not None:
+        start, label = second
         rf.extra = {"start": "prediction"}
-        q2 = acceleration_start(lib, base.q, motion)
+        q2 = start(lib, base.q, motion)
         if q2 is not None:
             lib.assign(base.q)
             rf2 = lm_refit(lib, q2, free, name, iterations=iterations)
-            rf2.extra = {"start": "observed_flight", "other_start_objective": float(rf.objective)}
+            rf2.extra = {"start": label, "other_start_objective": float(rf.objective)}
             if rf2.objective < rf.objective:
                 return rf2
             rf.extra["other_start_objective"] = float(rf2.objective)
