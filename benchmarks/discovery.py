@@ -149,12 +149,24 @@ def run_scene(hs, args, thresholds) -> dict:
         "psnr_after": res.gap.get("psnr_future_after"), "strengths": final, "truth_strengths": truth, "strength_errors": errors,
         "validation": d["validation"], "dofs": {s["name"]: s["dof"] for s in d["ranking"]["scores"]},
         "scores": {s["name"]: s["score"] for s in d["ranking"]["scores"]},
+        "refits": _refit_summary(d["refits"]),
         "seconds": {"generate": t_gen, "stage0": t_stage0, "fit": t_fit, "discover": t_disc, **res.seconds},
     }
     del module, res
     if args.device.startswith("cuda"):
         torch.cuda.empty_cache()
     return _clean(rec)
+
+
+def _refit_summary(refits: dict) -> dict:
+    """Per confirmation refit: its objective, strengths and, for a candidate refitted from two
+    starts (extra acceleration, air drag), the start kept and the other start's objective."""
+    out = {}
+    for name, r in refits.items():
+        extra = r.get("extra") or {}
+        out[name] = {"objective": r.get("objective"), "strengths": r.get("strengths") or {},
+                     **{k: extra[k] for k in ("start", "other_start_objective") if k in extra}}
+    return out
 
 
 def _order(d: dict) -> list[str]:

@@ -375,6 +375,21 @@ def _bench_module(name: str):
     return mod
 
 
+def test_discovery_record_keeps_the_start_each_refit_kept():
+    """A scene's record carries each confirmation refit's objective and strengths, and for a
+    candidate refitted from two starts which one was kept and the other's objective; a refit
+    without a second start carries no start."""
+    bench = _bench_module("discovery")
+    refits = {"base": {"objective": 2.0, "strengths": {}, "extra": {}},
+              "air_drag": {"objective": 1.5, "strengths": {"air_drag.linear": 2.4},
+                           "extra": {"start": "observed_drag_rate", "other_start_objective": 1.8}},
+              "wall": {"objective": 1.9, "strengths": {"wall.strength": 1.0}, "extra": {"offset": 0.1}}}
+    out = bench._refit_summary(refits)
+    assert out["air_drag"] == {"objective": 1.5, "strengths": {"air_drag.linear": 2.4}, "start": "observed_drag_rate",
+                               "other_start_objective": 1.8}
+    assert "start" not in out["wall"] and out["base"]["objective"] == 2.0
+
+
 def test_discovery_runs_counts_a_scene_as_named_only_when_every_run_names_it():
     """Two runs of the same scenes: the stable rate counts a scene whose effect the data show in
     both runs as named only if both runs name it; a null scene flagged once is listed; a scene that
