@@ -223,6 +223,7 @@ def summarize(records: list[dict], thresholds) -> dict:
         out["observable"] = {"n": len(obs), "of": len(phys),
                              "top1": float(np.mean([r["correct"] for r in obs])) if obs else None,
                              "top3": float(np.mean([r["expected"] in r["top3"] for r in obs])) if obs else None,
+                             "named_or_tied": float(np.mean([_named_or_tied(r) for r in obs])) if obs else None,
                              "median_gap_shrink": _median([r["cd_shrink"] or 0.0 for r in obs])}
         per = defaultdict(list)
         for r in hidden:
@@ -246,6 +247,12 @@ def summarize(records: list[dict], thresholds) -> dict:
     out["confusion"] = {e: dict(c) for e, c in conf.items()}
     out["confusion_columns"] = cols
     return out
+
+
+def _named_or_tied(rec: dict) -> bool:
+    """The true effect is the decision or one of the candidates the report names as tied with it
+    (the data explain it as well; the report says what would separate them)."""
+    return bool(rec["correct"]) or (rec["expected"] is not None and rec["expected"] in (rec.get("indistinguishable") or []))
 
 
 def truth_shrink(rec: dict) -> Optional[float]:
@@ -278,6 +285,7 @@ def markdown(summary: dict, title: str) -> str:
              f"| median future-Chamfer gap shrink (all hidden physics effects, 0 when missed) | {pct(s.get('median_gap_shrink_all'))} |",
              f"| top-1 / top-3 on hidden physics effects the data show (refitting the true effect halves the future gap: "
              f"{obs.get('n', 0)} of {obs.get('of', 0)} scenes) | {pct(obs.get('top1'))} / {pct(obs.get('top3'))} |",
+             f"| named first or among the tied candidates the report names, on those | {pct(obs.get('named_or_tied'))} |",
              f"| median future-Chamfer gap shrink on those (the decision's refit; 0 for \"no missing effect\") | "
              f"{pct(obs.get('median_gap_shrink'))} |",
              f"| false-positive rate on null scenes (thresholds used) | {pct(s.get('false_positive_rate'))} |",

@@ -105,13 +105,13 @@ def markdown(per_run: dict[str, dict], cmp: dict, thresholds_source: str) -> str
         return "-" if x is None else f"{100 * x:.0f} %"
 
     lines = [f"# Discovery decisions over {len(per_run)} runs", "",
-             "| run | scenes (hidden / null) | top-1 on effects the data show | false positives | "
-             "median gap shrink, all hidden physics |", "|---|---|---|---|---|"]
+             "| run | scenes (hidden / null) | top-1 on effects the data show | named first or tied | false positives | "
+             "median gap shrink, all hidden physics |", "|---|---|---|---|---|---|"]
     for name, s in per_run.items():
         obs = s.get("observable") or {}
         lines.append(f"| {name} | {s.get('n_hidden', 0)} / {s.get('n_null', 0)} | {pct(obs.get('top1'))} "
-                     f"({obs.get('n', 0)} of {obs.get('of', 0)} show it) | {pct(s.get('false_positive_rate'))} | "
-                     f"{pct(s.get('median_gap_shrink_all'))} |")
+                     f"({obs.get('n', 0)} of {obs.get('of', 0)} show it) | {pct(obs.get('named_or_tied'))} | "
+                     f"{pct(s.get('false_positive_rate'))} | {pct(s.get('median_gap_shrink_all'))} |")
     n_obs = len(cmp["observable_every_run"])
     lines += ["", f"Scenes in every run: {cmp['in_every_run']}; the data show the effect in every run in {n_obs} of "
               f"them; named in every run: {pct(cmp['named_every_run'])}, in at least one: {pct(cmp['named_some_run'])}. Null scenes flagged by "

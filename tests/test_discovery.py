@@ -390,6 +390,27 @@ def test_discovery_record_keeps_the_start_each_refit_kept():
     assert "start" not in out["wall"] and out["base"]["objective"] == 2.0
 
 
+def test_discovery_summary_counts_a_truth_named_among_the_tied():
+    """On the scenes whose effect the data show, top-1 counts the decision alone; "named or tied"
+    also counts a truth the report names as tied with the decision, never one it left out."""
+    from toolkit.discovery.calibration import Thresholds
+
+    bench = _bench_module("discovery")
+
+    def rec(effect, decision, tied, truth_cd):
+        return {"scene": f"{effect}-{decision}", "effect": effect, "expected": effect, "decision": decision,
+                "correct": decision == effect, "indistinguishable": tied, "top3": [decision], "cd_before": 1.0,
+                "cd_after": 0.2, "cd_truth_effect": truth_cd, "cd_shrink": 0.8, "validation": {}, "truth_strengths": {}}
+
+    records = [rec("air_drag", "air_drag", [], 0.2), rec("air_drag", "ground_friction", ["air_drag"], 0.2),
+               rec("wall", "extra_acceleration", ["ground_friction"], 0.3),
+               rec("timing", None, [], 0.9)]  # the data hardly show it: left out
+    obs = bench.summarize(records, Thresholds(validation=0.06, fit=0.0, camera=0.1))["observable"]
+    assert obs["n"] == 3 and obs["top1"] == pytest.approx(1 / 3) and obs["named_or_tied"] == pytest.approx(2 / 3)
+    assert "named first or among the tied candidates the report names, on those | 67 %" in bench.markdown(
+        bench.summarize(records, Thresholds(validation=0.06, fit=0.0, camera=0.1)), "t")
+
+
 def test_discovery_runs_counts_a_scene_as_named_only_when_every_run_names_it():
     """Two runs of the same scenes: the stable rate counts a scene whose effect the data show in
     both runs as named only if both runs name it; a null scene flagged once is listed; a scene that
