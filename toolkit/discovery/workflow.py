@@ -9,9 +9,9 @@ The steps (each in its own module):
    (the training frames minus the last ``holdout_frames``).
 3. **Confirm** (:mod:`~toolkit.discovery.confirm`): short Levenberg-Marquardt refits of the
    ``top_k`` candidates with the base parameters refitted too (body forces as a family: air
-   drag with the extra acceleration), and of the base alone (the control), on the refit frames; each is scored on data the refits did not use: the held-out
-   cameras on the refit frames, every camera and the stage-0 surfaces on the held-out training
-   frames.
+   drag with the extra acceleration), and of the base alone (the control), on the refit
+   frames; each is scored on data the refits did not use: the held-out cameras on the refit
+   frames, every camera and the stage-0 surfaces on the held-out training frames.
 4. **Decide** (:mod:`~toolkit.discovery.selection`, :mod:`~toolkit.discovery.calibration`): a
    physics candidate is discovered when its validation improvement over the control, less a
    penalty per extra strength parameter, and its training improvement pass thresholds
