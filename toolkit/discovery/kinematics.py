@@ -42,9 +42,11 @@ Two uses in discovery (:mod:`toolkit.discovery.workflow`):
   fitted to the observed track. A base fit that absorbed a drag into a slower throw leaves air
   drag's first-order score near zero, so its prediction starts the refit at no drag at all.
 
-Body forces are confirmed as a family (:func:`body_force_partners`): when the ranking sends one
-of them to a refit, the other is refitted too, so that the validation, not the first-order
-score of a base fit that absorbed the force, decides between a drag and a constant pull.
+
+Smooth forces are confirmed as a family (:func:`body_force_partners`): when the ranking sends
+one of them to a refit (the body forces; on a slide also ground friction), the others are
+refitted too, so that the validation, not the first-order score of a base fit that absorbed the
+force, decides between a drag, a constant pull and friction.
 
 Units: metres, seconds; the world frame of the physics input (gravity along its ``gravity``).
 """
@@ -312,12 +314,15 @@ def drag_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> Optional
     return lib.clip(q)
 
 
-def body_force_partners(chosen: Sequence[str], available: Sequence[str]) -> list[str]:
-    """The body forces among ``available`` (in :data:`BODY_FORCES` order) not in ``chosen``,
-    when ``chosen`` holds at least one body force; else ``[]``."""
-    if not any(n in BODY_FORCES for n in chosen):
+def body_force_partners(chosen: Sequence[str], available: Sequence[str], phase: Optional[str] = None) -> list[str]:
+    """The other members of the smooth-force family among ``available`` when ``chosen`` holds
+    one of them; else ``[]``. The family is the body forces (:data:`BODY_FORCES`) and, when the
+    observed phase is a ``"slide"``, ground friction, which acts smoothly while the body slides
+    (as in :func:`preferred_candidates`)."""
+    family = BODY_FORCES + (("ground_friction",) if phase == "slide" else ())
+    if not any(n in family for n in chosen):
         return []
-    return [n for n in BODY_FORCES if n in available and n not in chosen]
+    return [n for n in family if n in available and n not in chosen]
 
 
 def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str]) -> list[str]:

@@ -8,10 +8,11 @@ The steps (each in its own module):
    zero strength, plus a small search for the wall and plastic yield; on the *refit frames*
    (the training frames minus the last ``holdout_frames``).
 3. **Confirm** (:mod:`~toolkit.discovery.confirm`): short Levenberg-Marquardt refits of the
-   ``top_k`` candidates with the base parameters refitted too (body forces as a family: air
-   drag with the extra acceleration), and of the base alone (the control), on the refit
-   frames; each is scored on data the refits did not use: the held-out cameras on the refit
-   frames, every camera and the stage-0 surfaces on the held-out training frames.
+   ``top_k`` candidates with the base parameters refitted too (smooth forces as a family: air
+   drag with the extra acceleration, and on a slide ground friction), and of the base alone
+   (the control), on the refit frames; each is scored on data the refits did not use: the
+   held-out cameras on the refit frames, every camera and the stage-0 surfaces on the held-out
+   training frames.
 4. **Decide** (:mod:`~toolkit.discovery.selection`, :mod:`~toolkit.discovery.calibration`): a
    physics candidate is discovered when its validation improvement over the control, less a
    penalty per extra strength parameter, and its training improvement pass thresholds
@@ -302,9 +303,10 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     undetermined = undetermined_base(getattr(module, "uncertainty_result", None), lib.base_names)
     joint = absorbed_candidates(ranking, state, lib, undetermined, [s.name for s in chosen])
     chosen += [ranking.get(n) for n in joint]
-    # a base fit that absorbed a drag (a slower throw) scores it near zero: body forces are
-    # confirmed as a family, and the validation decides between a drag and a constant pull
-    chosen += [ranking.get(n) for n in body_force_partners([s.name for s in chosen], ranking.names)]
+    # a base fit that absorbed a drag (a slower throw) scores it near zero: smooth forces are
+    # confirmed as a family, and the validation decides between a drag, a constant pull, friction
+    chosen += [ranking.get(n) for n in body_force_partners([s.name for s in chosen], ranking.names,
+                                                           None if motion is None else motion.phase)]
     for s in chosen:
         refits[s.name] = refit_candidate(lib, plib, state, s, refits["base"], refit_iterations, motion=motion)
     if "camera_pose" in refits:  # narrowed to the one camera that carries the improvement
