@@ -470,8 +470,8 @@ def test_discovery_report_decides_a_tie_as_the_run_did_with_its_observed_motion(
     thr = Thresholds(validation=0.06, fit=0.0, camera=0.1, source="test")
     rec = {"validation": {"base": v(0.0), "extra_acceleration": v(0.30), "wall": v(0.29)},
            "dofs": {"extra_acceleration": 3, "wall": 2}, "noise": None, "single_camera": None}
-    assert bench._decide({**rec, "motion": None}, thr)[0] == "wall"  # parsimony alone
-    assert bench._decide({**rec, "motion": motion.to_dict()}, thr)[:2] == ("extra_acceleration", "physics")
+    assert bench.decide_record({**rec, "motion": None}, thr)[0] == "wall"  # parsimony alone
+    assert bench.decide_record({**rec, "motion": motion.to_dict()}, thr)[:2] == ("extra_acceleration", "physics")
     old = {k: v for k, v in motion.to_dict().items() if k not in ("law", "law_loo", "drag_rate", "law_frames")}
     assert ObservedMotion.from_dict(old).law == "either"  # a record from before the force law
 
