@@ -61,7 +61,7 @@ import numpy as np
 
 __all__ = ["ObservedMotion", "MIN_PHASE_FRAMES", "BEND_FACTOR", "BODY_FORCES", "CONSTANT_FORCES", "fit_motion",
            "force_law", "leading_phase", "observed_motion", "preferred_candidates", "loo_errors", "acceleration_start",
-           "drag_start", "body_force_partners", "motion_sentence", "law_sentence"]
+           "drag_start", "smooth_forces", "body_force_partners", "motion_sentence", "law_sentence"]
 
 log = logging.getLogger(__name__)
 
@@ -314,12 +314,18 @@ def drag_start(lib, q: np.ndarray, motion: Optional[ObservedMotion]) -> Optional
     return lib.clip(q)
 
 
+def smooth_forces(phase: Optional[str]) -> tuple[str, ...]:
+    """The candidates that bend the track smoothly in ``phase``: the body forces, and on a
+    ``"slide"`` ground friction too (it cannot act in a flight)."""
+    return BODY_FORCES + (("ground_friction",) if phase == "slide" else ())
+
+
 def body_force_partners(chosen: Sequence[str], available: Sequence[str], phase: Optional[str] = None) -> list[str]:
     """The other members of the smooth-force family among ``available`` when ``chosen`` holds
     one of them; else ``[]``. The family is the body forces (:data:`BODY_FORCES`) and, when the
     observed phase is a ``"slide"``, ground friction, which acts smoothly while the body slides
     (as in :func:`preferred_candidates`)."""
-    family = BODY_FORCES + (("ground_friction",) if phase == "slide" else ())
+    family = smooth_forces(phase)
     if not any(n in family for n in chosen):
         return []
     return [n for n in family if n in available and n not in chosen]
@@ -333,7 +339,7 @@ def preferred_candidates(motion: Optional[ObservedMotion], names: Sequence[str])
     if motion is None or motion.shape == "straight":
         return []
     if motion.shape == "smooth":
-        smooth = BODY_FORCES + (("ground_friction",) if motion.phase == "slide" else ())
+        smooth = smooth_forces(motion.phase)
         if motion.law == "constant":
             smooth = tuple(n for n in smooth if n in CONSTANT_FORCES)
         elif motion.law == "drag":
