@@ -374,7 +374,7 @@ def main(argv=None) -> int:
     # decisions are re-derived with the final thresholds (the stored statistics do not depend on them)
     records = redecide(records, thresholds)
     summary = summarize(records, thresholds)
-    title = "CPU smoke run (`--small`, tiny scenes)" if args.small else "GPU run (full-size scenes)"
+    title = "CPU smoke run (`--small`, tiny scenes)" if args.small else _full_size_title(args)
     if args.geometry == "stage0":
         title += f", from images (stage-0 geometry {_stage0_label(args.stage0)}, positions held still)"
     table = markdown(summary, title)
@@ -385,6 +385,18 @@ def main(argv=None) -> int:
     if args.update_docs:
         update_docs(table, args.small, args.geometry)
     return 0
+
+
+def _full_size_title(args) -> str:
+    """The table's title for full-size scenes, naming where stage 0 and the fits ran (not known to
+    ``--report-only``, which tabulates records made elsewhere)."""
+    if args.report_only:
+        return "Full-size scenes"
+    fits = "GPU" if str(args.device).startswith("cuda") else "CPU"
+    stage0 = args.stage0_device or args.device
+    where = f"{fits} run" if str(stage0) == str(args.device) or args.geometry != "stage0" else \
+        f"{fits} fits, stage 0 on {'GPU' if str(stage0).startswith('cuda') else 'CPU'}"
+    return f"{where} (full-size scenes)"
 
 
 if __name__ == "__main__":

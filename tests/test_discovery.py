@@ -390,6 +390,24 @@ def test_discovery_record_keeps_the_start_each_refit_kept():
     assert "start" not in out["wall"] and out["base"]["objective"] == 2.0
 
 
+def test_discovery_table_title_names_where_stage0_and_the_fits_ran():
+    """The full-size table's title says where the fits and stage 0 ran (a CPU run was once titled
+    "GPU run"), and makes no claim when it only tabulates stored records."""
+    from types import SimpleNamespace
+
+    bench = _bench_module("discovery")
+
+    def title(device, stage0_device=None, geometry="stage0", report_only=False):
+        return bench._full_size_title(SimpleNamespace(device=device, stage0_device=stage0_device, geometry=geometry,
+                                                      report_only=report_only))
+
+    assert title("cpu") == "CPU run (full-size scenes)"
+    assert title("cuda:0") == "GPU run (full-size scenes)"
+    assert title("cpu", "cuda") == "CPU fits, stage 0 on GPU (full-size scenes)"
+    assert title("cpu", "cuda", geometry="oracle") == "CPU run (full-size scenes)"
+    assert title("cuda", report_only=True) == "Full-size scenes"
+
+
 def test_discovery_summary_counts_a_truth_named_among_the_tied():
     """On the scenes whose effect the data show, top-1 counts the decision alone; "named or tied"
     also counts a truth the report names as tied with the decision, never one it left out."""
