@@ -14,11 +14,13 @@ more than the fit's misfit, the physics is fitted again at ``dx / 2`` in the sub
 
 The refinement has about 8x the particles and nodes and twice the substeps of the parent's
 physics stage. On a GPU that is not full at dx 0.02 m this costs far less than 8x (one full-size
-elastic scene on an H100: 176 s at dx 0.02 m, 247 s at 0.01 m with two runs sharing the card), so
+elastic scene on an H100: 176 s at dx 0.02 m, 247 s at 0.01 m with two runs sharing the card;
+1.8-3.4x with five sharing an H200, which the refined fits filled), so
 ``"auto"`` refines on CUDA devices; on a CPU it costs the full 8x, so ``"auto"`` only says that the
 check failed and how to refine (``--refine-grid``). Why it is worth it where the grid check fails:
 the full-size letter T of the whole-scene benchmark came out 0.60 decades soft in E at dx 0.02 m
-and 0.16 at 0.01 m (``docs/limits.md``).
+and 0.16 at 0.01 m (``docs/limits.md``); from the true body, the five full-size elastic scenes'
+mean log E error fell from 0.52 to 0.24 (``docs/results/paper_size.md``, round 15).
 """
 
 from __future__ import annotations

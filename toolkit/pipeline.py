@@ -74,8 +74,8 @@ class RunSettings:
         refine_grid: when the grid check finds the estimate grid-dependent, fit again at half the
             grid spacing in ``out/refined`` from the estimate, sharing stage 0
             (:mod:`toolkit.grid_refinement`); the summary's ``refined`` holds that run's summary.
-            ``"auto"`` (default): on a CUDA device only, where it costs about 1.4x the physics
-            stage (8x on CPU); ``True``: on any device; ``False``: never.
+            ``"auto"`` (default): on a CUDA device only, where it costs 1.4-3.4x the physics
+            stage (more the fuller the card; 8x on CPU); ``True``: on any device; ``False``: never.
         threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
             alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
             ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA

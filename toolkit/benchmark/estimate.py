@@ -37,8 +37,9 @@ class DeviceProfile:
         image_metric_per_mpix: PSNR + SSIM of one image, per megapixel.
         generate_per_frame: simulating and rendering one frame of a synthetic scene (all cameras).
         refine_factor: a fit refined at half the grid spacing (``--refine-grid``) costs this many
-            times the first fit's work (measured: 1.4x on an H100, about 8x on 2 CPU cores;
-            ``docs/limits.md``).
+            times the first fit's work (measured on CUDA: 1.4x with two fits sharing an H100, 1.8-3.4x,
+            mean 2.7x, with five sharing an H200, whose first fits did not fill it and whose refined
+            fits did; about 8x on 2 CPU cores; ``docs/limits.md``).
     """
 
     name: str
@@ -54,7 +55,7 @@ class DeviceProfile:
     emd_frame: float
     image_metric_per_mpix: float
     generate_per_frame: float
-    refine_factor: float = 1.4
+    refine_factor: float = 2.7
 
 
 PROFILES: dict[str, DeviceProfile] = {

@@ -78,8 +78,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", help=f"auto, cpu, cuda or cuda:N (default: {d['device']})")
     parser.add_argument("--refine-grid", action=argparse.BooleanOptionalAction, default=None,
                         help="when the grid check finds the estimate grid-dependent, fit again at half the grid spacing "
-                             "in OUT/refined, starting from the estimate (default: on CUDA only, where it costs about "
-                             "1.4x the physics stage; about 8x on a CPU)")
+                             "in OUT/refined, starting from the estimate (default: on CUDA only, where it costs 1.4-3.4x "
+                             "the physics stage, more the fuller the card; about 8x on a CPU)")
     parser.add_argument("--seed", type=int, help=f"seed of stage 0 and of the batch sampling (default: {d['seed']})")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out with the settings it recorded (flags given must agree)")
