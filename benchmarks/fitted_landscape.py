@@ -54,6 +54,10 @@ def main(argv=None) -> int:
 
     import torch
 
+    from toolkit.verbosity import configure_output
+
+    configure_output(False)  # stdout holds only the JSON lines (no Warp banner or module-load lines)
+
     from toolkit.pipeline import load_fitted_module
 
     from toolkit.metrics.geometry import mean_nearest_distance
