@@ -58,9 +58,8 @@ def main(argv=None) -> int:
 
     configure_output(False)  # stdout holds only the JSON lines (no Warp banner or module-load lines)
 
-    from toolkit.pipeline import load_fitted_module
-
     from toolkit.metrics.geometry import mean_nearest_distance
+    from toolkit.pipeline import load_fitted_module
 
     module = load_fitted_module(args.run, device=args.device)
     gt = module.input.ground_truth
