@@ -73,6 +73,10 @@ def main(argv=None) -> int:
     ground, dx = lib.sim.config.ground_height, float(lib.sim.config.dx)
     heights = None if ground is None else [round(float((p[..., 1].min() - ground) / dx), 3) for p in pos]
     motion = observed_motion(lib, lib.q0)
+    if args.start == "observed-slide" and (motion is None or motion.phase != "slide"):
+        found = f"a {phase} over frames {frames}" if frames else "no run of 5 frames on or off the ground"
+        raise SystemExit(f"{args.run}: no observed slide (the base prediction has {found}); "
+                         f"--start observed-slide needs one")
     base = lm_refit(lib, lib.q0, lib.base_names, "base", iterations=args.iterations)
     print(json.dumps({"run": str(args.run), "param": args.param, "base_names": lib.base_names,
                       "base_objective": base.objective, "fit_frames": lib.fit_frames,
@@ -80,9 +84,6 @@ def main(argv=None) -> int:
                       "motion": motion.to_dict() if motion else None}), flush=True)
     starts = {"base": base.q}
     if args.start == "observed-slide":
-        if motion is None or motion.phase != "slide":
-            raise SystemExit(f"{args.run}: no observed slide (the base prediction's leading phase is "
-                             f"{phase!r} over frames {frames}); --start observed-slide needs one")
         q = base.q.copy()
         t1 = float(module.input.times[motion.frames[0]]) - float(module.input.times[0])
         v1 = np.asarray(motion.v0) + np.asarray(motion.acceleration) * t1
