@@ -10,6 +10,9 @@ the data put that strength once everything else may follow it; a profile that fa
 truth while the confirmation's refit stays at zero says the refit's start, one that rises says the
 objective itself.
 
+``--surfaces-from RUN2`` uses another run's geometric targets (an oracle run's of the same
+scene, or the reverse), which splits what the body does from what the targets do.
+
 ``--start observed-slide`` also refits each value from v0's horizontal components at the observed
 slide's velocity where it starts (the base fit may have slowed the throw to imitate friction);
 each line then has both starts. The phase the workflow would find (``leading_phase`` on the base
@@ -44,6 +47,9 @@ def main(argv=None) -> int:
     ap.add_argument("values", type=float, nargs="+", help="values of the strength (the library's units)")
     ap.add_argument("--start", choices=["base", "observed-slide"], default="base",
                     help="observed-slide: also refit from v0 at the observed slide's velocity")
+    ap.add_argument("--surfaces-from", metavar="RUN2",
+                    help="use another run's geometric targets (its physics_input.pt's surfaces, the same scene "
+                         "and frames), e.g. an oracle run's, to split the body from the targets")
     ap.add_argument("--iterations", type=int, default=8, help="Levenberg-Marquardt iterations per refit (default 8)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
@@ -60,6 +66,14 @@ def main(argv=None) -> int:
     from toolkit.discovery.loading import load_fitted_module
 
     module = load_fitted_module(args.run, device=args.device)
+    if args.surfaces_from:
+        from toolkit.physics.inputs import PhysicsInput
+
+        other = PhysicsInput.load(Path(args.surfaces_from) / "physics_input.pt")
+        if len(other.surfaces) != len(module.input.surfaces):
+            raise SystemExit(f"--surfaces-from {args.surfaces_from}: {len(other.surfaces)} frames of surfaces, "
+                             f"{args.run} has {len(module.input.surfaces)}; expected a run of the same scene")
+        module.input.surfaces = [t.to(module.input.surfaces[0].device) for t in other.surfaces]
     lib = LibraryModel(module, None)
     if args.param not in lib.index_of:
         raise SystemExit(f"{args.param!r} is not a strength of this run's library: "
@@ -78,7 +92,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.run}: no observed slide (the base prediction has {found}); "
                          f"--start observed-slide needs one")
     base = lm_refit(lib, lib.q0, lib.base_names, "base", iterations=args.iterations)
-    print(json.dumps({"run": str(args.run), "param": args.param, "base_names": lib.base_names,
+    print(json.dumps({"run": str(args.run), "surfaces_from": args.surfaces_from, "param": args.param,
+                      "base_names": lib.base_names,
                       "base_objective": base.objective, "fit_frames": lib.fit_frames,
                       "leading_phase": {"frames": frames, "phase": phase}, "min_height_cells": heights,
                       "motion": motion.to_dict() if motion else None}), flush=True)
