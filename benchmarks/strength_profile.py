@@ -2,8 +2,9 @@
 
 For a fitted run folder (a discovery benchmark's ``runs/<scene>`` or any ``projo4d run`` folder),
 builds the discovery library (:class:`toolkit.discovery.library.LibraryModel`) on the same fit
-frames as :func:`toolkit.discovery.workflow.discover` (the last quarter of the training frames
-held out), refits the base parameters once, then for each value of one strength (``PARAM``, e.g.
+frames as :func:`toolkit.discovery.workflow.discover`
+(:func:`~toolkit.discovery.workflow.refit_frames`), refits the base parameters once, then for each
+value of one strength (``PARAM``, e.g.
 ``ground_friction.mu``) holds it there and refits the base parameters (v0, the material, the body's
 shift) with the confirmation's Levenberg-Marquardt. The lowest objective over the values is where
 the data put that strength once everything else may follow it; a profile that falls toward the
@@ -53,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=8, help="Levenberg-Marquardt iterations per refit (default 8)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
+    if args.surfaces_from and not (Path(args.surfaces_from) / "physics_input.pt").is_file():
+        ap.error(f"--surfaces-from {args.surfaces_from}: no physics_input.pt there (expected a run folder of the same scene)")
 
     import numpy as np
 
@@ -64,6 +67,7 @@ def main(argv=None) -> int:
     from toolkit.discovery.kinematics import leading_phase, observed_motion
     from toolkit.discovery.library import LibraryModel
     from toolkit.discovery.loading import load_fitted_module
+    from toolkit.discovery.workflow import refit_frames
 
     module = load_fitted_module(args.run, device=args.device)
     if args.surfaces_from:
@@ -79,9 +83,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.param!r} is not a strength of this run's library: "
                          f"{', '.join(n for n in lib.index_of if '.' in n and not n.startswith(('v0.', 'mat.', 'shift.')))}")
     lib.calibrate_geometry_weight(lib.q0)
-    n = module.input.n_train
-    held = max(1, round(n / 4)) if n >= 4 else 0
-    lib.fit_frames = list(range(n - held))
+    lib.fit_frames, _ = refit_frames(module.input.n_train)
     frames, phase = leading_phase(lib, lib.q0, lib.fit_frames)
     _, pos = lib.trajectory(lib.q0, lib.fit_frames)
     ground, dx = lib.sim.config.ground_height, float(lib.sim.config.dx)

@@ -390,6 +390,19 @@ def test_discovery_record_keeps_the_start_each_refit_kept():
     assert "start" not in out["wall"] and out["base"]["objective"] == 2.0
 
 
+def test_refit_frames_hold_out_the_last_quarter_and_keep_two_for_the_refits():
+    """The confirmation's split: the last quarter of the training frames held out (at least 1 from
+    4 frames on, none below), an explicit count clipped so that 2 frames stay for the refits."""
+    from toolkit.discovery.workflow import refit_frames
+
+    assert refit_frames(10) == (list(range(8)), [8, 9])
+    assert refit_frames(14) == (list(range(10)), [10, 11, 12, 13])
+    assert refit_frames(4) == ([0, 1, 2], [3])
+    assert refit_frames(3) == ([0, 1, 2], [])
+    assert refit_frames(6, holdout_frames=9) == ([0, 1], [2, 3, 4, 5])
+    assert refit_frames(6, holdout_frames=-1) == (list(range(6)), [])
+
+
 def test_discovery_table_title_names_where_stage0_and_the_fits_ran():
     """The full-size table's title says where the fits and stage 0 ran (a CPU run was once titled
     "GPU run"), and makes no claim when it only tabulates stored records."""

@@ -51,7 +51,7 @@ from toolkit.discovery.refits import final_refit, refit_candidate
 from toolkit.discovery.residuals import Localization, localize
 from toolkit.discovery.selection import criterion_noise, decide, passes, penalized, relative_improvements, validation_components
 
-__all__ = ["DiscoveryResult", "discover", "decide", "truth_from_ground_truth", "validation_components"]
+__all__ = ["DiscoveryResult", "discover", "decide", "refit_frames", "truth_from_ground_truth", "validation_components"]
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +209,15 @@ def truth_from_ground_truth(gt: Optional[dict], base_material: str) -> Optional[
     return None
 
 
+def refit_frames(n_train: int, holdout_frames: Optional[int] = None) -> tuple[list[int], list[int]]:
+    """The confirmation's split of the training frames ``[0, n_train)``: ``(refit frames, held-out
+    frames)``, the last ``holdout_frames`` held out (default a quarter, at least 1 with 4 or more
+    training frames, none with fewer); at least 2 frames stay for the refits."""
+    H = holdout_frames if holdout_frames is not None else (max(1, round(n_train / 4)) if n_train >= 4 else 0)
+    H = int(min(max(H, 0), max(n_train - 2, 0)))
+    return list(range(n_train - H)), list(range(n_train - H, n_train))
+
+
 def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Optional[Sequence[str]] = None, top_k: int = 4,
              holdout_frames: Optional[int] = None, refit_iterations: int = 8, final_iterations: int = 12,
              thresholds: Union[Thresholds, str, Path, None] = None, report: bool = True, emd: bool = True,
@@ -276,9 +285,7 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     # ------------------------------------------------------------------ 2. rank
     t = time.time()
     n_train = inp.n_train
-    H = holdout_frames if holdout_frames is not None else (max(1, round(n_train / 4)) if n_train >= 4 else 0)
-    H = int(min(max(H, 0), max(n_train - 2, 0)))
-    fit_frames, val_frames = list(range(n_train - H)), list(range(n_train - H, n_train))
+    fit_frames, val_frames = refit_frames(n_train, holdout_frames)
     lib.fit_frames = fit_frames
     plib = None
     if "plastic_yield" in {c.name for c in library(candidates)} and base_name in ELASTIC_MATERIALS:
