@@ -49,8 +49,14 @@ def main(argv=None) -> int:
                     help="Gaussians' shapes during the sweep (default: as the run was fitted)")
     ap.add_argument("--deform-covariances", action="store_const", const="deformed", dest="gaussian_shape",
                     help="the same as --gaussian-shape deformed")
-    ap.add_argument("--device", default="cpu", help="cpu or cuda[:N] (default cpu)")
+    ap.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
+    from toolkit.run_validation import SettingsError, check_device
+
+    try:
+        args.device = check_device(args.device)
+    except SettingsError as err:
+        ap.error(str(err))
 
     import torch
 
