@@ -145,6 +145,7 @@ def run_scene(hs, args, thresholds) -> dict:
         "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence")} for d in res.separation],
         "joint": res.joint, "floors": res.floors, "noise": res.noise, "motion": res.motion,
         "single_camera": res.localization.single_camera if res.localization.single_camera in inp.train_cameras else None,
+        "silhouettes": res.silhouettes,
         "correct": res.decision == hs.expected, "top3": order[:3], "cd_before": res.gap.get("cd_future_before"),
         "cd_after": res.gap.get("cd_future_after"), "cd_truth_effect": res.gap.get("cd_future_truth_effect"),
         "cd_shrink": res.gap.get("cd_shrink"), "psnr_before": res.gap.get("psnr_future_before"),

@@ -137,11 +137,12 @@ def _truth(v: dict, k: str) -> str:
 
 def decide_record(rec: dict, thr):
     """The decision of a stored record under thresholds ``thr``, as :func:`toolkit.discovery.discover`
-    made it: with the noise, the single camera and the observed motion's preference among tied
-    candidates, when recorded."""
+    made it: with the noise, the single camera, the observed motion's preference among tied
+    candidates and the silhouette check's suspect, when recorded."""
     from toolkit.discovery.kinematics import ObservedMotion, preferred_candidates
     from toolkit.discovery.workflow import decide
 
     motion = ObservedMotion.from_dict(rec["motion"]) if rec.get("motion") else None
+    suspect = (rec.get("silhouettes") or {}).get("suspect")
     return decide(rec["validation"], rec["dofs"], thr, noise=rec.get("noise"), single_camera=rec.get("single_camera"),
-                  prefer=preferred_candidates(motion, list(rec["validation"])))
+                  prefer=preferred_candidates(motion, list(rec["validation"])), silhouette_suspect=suspect)

@@ -65,6 +65,9 @@ def main() -> None:
     import numpy as np
 
     from toolkit.data import load_scene
+    from toolkit.verbosity import configure_output
+
+    configure_output(False)  # stdout holds only the JSON lines (no Warp banner or module-load lines)
     from toolkit.data.ply import read_ply_points
 
     if not args.scene.is_dir():

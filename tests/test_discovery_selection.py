@@ -76,6 +76,25 @@ def test_camera_pose_wins_over_physics_when_one_camera_carries_the_residual():
     assert decide(val, dofs, thr, single_camera=5)[0] == "extra_acceleration"
 
 
+def test_masks_that_contradict_a_camera_decide_for_the_observation():
+    """A camera whose pose the silhouettes contradict is an observation problem even when the
+    camera-pose refit gains nothing (the geometry absorbed the shift) and a force passes; without
+    the control's refit there is nothing to report it with, and the decision is unchanged."""
+    from toolkit.discovery.calibration import Thresholds
+    from toolkit.discovery.selection import decide
+
+    thr = Thresholds(validation=0.05, camera=0.10)
+    dofs = {"air_drag": 1, "camera_pose": 3}
+    val = {"base": v(0.0), "air_drag": v(0.2, fit=0.3), "camera_pose": v(0.0, fit=0.001, control=True)}
+    assert decide(val, dofs, thr)[0] == "air_drag"
+    assert decide(val, dofs, thr, silhouette_suspect=1) == ("camera_pose", "observation", [])
+    val.pop("camera_pose")
+    assert decide(val, dofs, thr, silhouette_suspect=1)[0] == "air_drag"
+    no_force = {"base": v(0.0), "camera_pose": v(0.0, fit=0.001, control=True)}
+    assert decide(no_force, dofs, thr) == (None, "none", [])
+    assert decide(no_force, dofs, thr, silhouette_suspect=1) == ("camera_pose", "observation", [])
+
+
 def test_candidate_absorbed_by_an_undetermined_base_parameter_is_refitted_jointly():
     from toolkit.discovery.joint import absorbed_candidates, library_name, undetermined_base
 

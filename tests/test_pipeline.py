@@ -44,6 +44,9 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
         assert (out / "report" / name).stat().st_size > 1000
     est = json.loads((out / "physics" / "estimate.json").read_text())
     assert est["iterations"] == 8
+    # the fitting cameras' masks were checked against their poses before anything was trained
+    silhouettes = json.loads((out / "silhouettes.json").read_text())
+    assert silhouettes["cameras"] == [1, 5, 9] and silhouettes["suspect"] is None and "message" in silhouettes
     # a rerun finds the finished fit and does not train again
     mtime = (out / "physics" / "checkpoints" / "last.ckpt").stat().st_mtime
     assert main(args) == 0

@@ -243,6 +243,11 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
         except CorruptArtifactError as err:
             set_aside(path, str(err))
     device = _device(s.device)
+    from toolkit.data import load_scene
+    from toolkit.scene.silhouette_agreement import check_scene
+
+    scene = load_scene(s.scene)  # the fitting cameras' masks must agree (advice, before any training)
+    check_scene(scene, s.cameras, range(training_frames(scene, s.n_train)), run / "silhouettes.json")
     if s.geometry == "oracle":
         from toolkit.physics.oracle import oracle_input
 
@@ -254,10 +259,8 @@ def build_physics_input(s: RunSettings, run: Path, timings: dict) -> Path:
         inp.save(path)
         return path
 
-    from toolkit.data import load_scene
     from toolkit.scene.continuum import ContinuumConfig, build_continuum
 
-    scene = load_scene(s.scene)
     module, views = fit_stage0_step(s, scene, run, timings)
     t0 = float(views.times[0])
     coverage_file = run / "stage0" / COVERAGE_FILE

@@ -19,13 +19,24 @@ this refit improves the training objective by more than the calibrated
 the allowed amount, and either the held-out data improve (a corrected pose lets the physics fit
 the other views) or the improvement is concentrated in the one camera (at least
 :data:`CONCENTRATED`: a rigid image-space shift of one view that the physics never followed).
+
+Before any refit, :func:`silhouette_check` asks the masks themselves: where one fitted camera's
+silhouettes contradict the others' (:mod:`toolkit.scene.silhouette_agreement`), no force can be
+the cause, so the control is confirmed on that camera and the decision is an observation problem
+(:func:`toolkit.discovery.selection.decide`, ``silhouette_suspect``). A shift the geometry absorbs
+(stage 0 fitted to the wrong camera) leaves the training loss unmoved, but not the masks.
 """
 
 from __future__ import annotations
 
+import logging
+from typing import Optional
+
 import numpy as np
 
-__all__ = ["CONCENTRATED", "single_camera_refit", "camera_shift_text"]
+log = logging.getLogger(__name__)
+
+__all__ = ["CONCENTRATED", "single_camera_refit", "camera_shift_text", "silhouette_check"]
 
 #: share of the all-camera improvement one camera's shift must recover (twice what the other
 #: cameras recover together with 3 fitted cameras). Chosen, not calibrated: on the tiny stage-0
@@ -36,7 +47,25 @@ __all__ = ["CONCENTRATED", "single_camera_refit", "camera_shift_text"]
 CONCENTRATED = 2.0 / 3.0
 
 
-def single_camera_refit(lib, base, full, iterations: int):
+def silhouette_check(inp) -> Optional[dict]:
+    """Whether the fitted cameras' silhouettes agree on the training frames
+    (:func:`toolkit.scene.silhouette_agreement.silhouette_agreement` on the physics input's claimed
+    cameras and masks): its ``to_dict()`` with ``message``, or ``None`` when it cannot run (it
+    must not stop the discovery). A ``suspect`` is a camera whose pose the masks contradict,
+    which no physics can cause."""
+    from toolkit.scene.silhouette_agreement import silhouette_agreement
+
+    try:
+        cams = list(inp.train_cameras)
+        check = silhouette_agreement(inp.cameras, {c: inp.masks[c] for c in cams}, cams, range(inp.n_train))
+    except Exception as exc:  # no masks, an empty frame: the check is advice
+        log.warning("silhouette check skipped: %s", exc)
+        return None
+    log.info("silhouettes: %s", check.message())
+    return {**check.to_dict(), "message": check.message()}
+
+
+def single_camera_refit(lib, base, full, iterations: int, camera: Optional[int] = None):
     """The camera-pose control narrowed to one camera (see the module docstring).
 
     Args:
@@ -44,6 +73,9 @@ def single_camera_refit(lib, base, full, iterations: int):
         base: the base-only :class:`~toolkit.discovery.confirm.Refit`.
         full: the all-camera ``camera_pose`` refit.
         iterations: Levenberg-Marquardt iterations.
+        camera: the scene index of the camera to narrow to (the silhouette check's suspect);
+            default (or a camera that is not fitted): the one whose loss the all-camera refit
+            lowered most.
 
     Returns:
         A :class:`~toolkit.discovery.confirm.Refit` named ``camera_pose`` whose ``extra`` holds
@@ -56,7 +88,7 @@ def single_camera_refit(lib, base, full, iterations: int):
     before = lib.image_losses(base.q, lib.fit_frames, cams).mean(0).numpy()
     after = lib.image_losses(full.q, lib.fit_frames, cams).mean(0).numpy()
     drop = before - after
-    k = int(np.argmax(drop))
+    k = cams.index(camera) if camera in cams else int(np.argmax(drop))
     names = [f"camera_pose.c{k}.{a}" for a in "xyz"]
     q = base.q.copy()
     for n in names:

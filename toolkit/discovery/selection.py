@@ -142,7 +142,8 @@ def camera_reported(cam: Optional[dict], thr) -> bool:
 
 
 def decide(validation: dict, dofs: dict[str, int], thr, noise: Optional[dict[str, dict[str, float]]] = None,
-           single_camera: Optional[int] = None, prefer: Sequence[str] = ()) -> tuple[Optional[str], str, list[str]]:
+           single_camera: Optional[int] = None, prefer: Sequence[str] = (),
+           silhouette_suspect: Optional[int] = None) -> tuple[Optional[str], str, list[str]]:
     """``(decision, kind, tied)`` from the confirmation's validation statistics, the candidates'
     numbers of strength parameters and the thresholds.
 
@@ -157,7 +158,13 @@ def decide(validation: dict, dofs: dict[str, int], thr, noise: Optional[dict[str
     (``single_camera``, :attr:`toolkit.discovery.residuals.Localization.single_camera`) and the
     camera-pose control explains the training data at least as well as the best physics
     candidate, the observation problem wins over physics: a force acts on every view alike.
+    When the fitted cameras' silhouettes contradict one camera's pose (``silhouette_suspect``,
+    :func:`toolkit.discovery.camera.silhouette_check`) and the camera-pose control was refitted,
+    the decision is that observation problem whatever the candidates do: masks of one instant that
+    disagree are not a matter of physics.
     """
+    if silhouette_suspect is not None and "camera_pose" in validation:
+        return "camera_pose", "observation", []
     per = getattr(thr, "per_parameter", 0.0)
     score = {n: penalized(v["validation"], dofs.get(n, v.get("dof", 1)), per) for n, v in validation.items()}
     passing = [n for n, v in validation.items() if passes(n, {**v, "dof": dofs.get(n, v.get("dof", 1))}, thr)]

@@ -93,6 +93,8 @@ class DiscoveryResult:
         motion: the observed centroid over the clip's first phase (a flight or a slide) and its
             shape (:meth:`toolkit.discovery.kinematics.ObservedMotion.to_dict`), ``None``
             without enough frames.
+        silhouettes: whether the fitted cameras' masks agree
+            (:func:`toolkit.discovery.camera.silhouette_check`; ``suspect``: a camera they contradict).
         lib, plastic_lib: the library models (not serialized).
     """
 
@@ -118,6 +120,7 @@ class DiscoveryResult:
     joint: dict[str, str] = field(default_factory=dict)
     noise: dict[str, dict[str, float]] = field(default_factory=dict)
     motion: Optional[dict] = None
+    silhouettes: Optional[dict] = None
     lib: Optional[LibraryModel] = field(default=None, repr=False)
     plastic_lib: Optional[LibraryModel] = field(default=None, repr=False)
 
@@ -139,7 +142,7 @@ class DiscoveryResult:
             "gap": self.gap, "params": self.params, "thresholds": self.thresholds.to_dict(), "truth": self.truth,
             "identified": self.identified, "holdout_frames": self.holdout_frames, "seconds": self.seconds,
             "floors": self.floors, "separation": self.separation, "joint": self.joint,
-            "noise": self.noise, "motion": self.motion,
+            "noise": self.noise, "motion": self.motion, "silhouettes": self.silhouettes,
         }
         return _clean(d)
 
@@ -274,6 +277,11 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     lib = LibraryModel(module, candidates)
     lib.calibrate_geometry_weight(lib.q0)
     loc = localize(lib)
+    from toolkit.discovery.camera import silhouette_check
+
+    silhouettes = silhouette_check(inp)
+    suspect = (silhouettes or {}).get("suspect")
+    suspect = suspect if suspect in inp.train_cameras else None
     floors = None
     if geometry_floor if geometry_floor is not None else (inp.meta or {}).get("source") == "stage0":
         from toolkit.discovery.from_images import geometry_floor as _floor
@@ -314,19 +322,22 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     # confirmed as a family, and the validation decides between a drag, a constant pull, friction
     chosen += [ranking.get(n) for n in body_force_partners([s.name for s in chosen], ranking.names,
                                                            None if motion is None else motion.phase)]
+    if suspect is not None and "camera_pose" in ranking.names and "camera_pose" not in {s.name for s in chosen}:
+        chosen.append(ranking.get("camera_pose"))  # the masks contradict a camera: confirm the control on it
     for s in chosen:
         refits[s.name] = refit_candidate(lib, plib, state, s, refits["base"], refit_iterations, motion=motion)
     if "camera_pose" in refits:  # narrowed to the one camera that carries the improvement
         from toolkit.discovery.camera import single_camera_refit
 
-        refits["camera_pose"] = single_camera_refit(lib, refits["base"], refits["camera_pose"], refit_iterations)
+        refits["camera_pose"] = single_camera_refit(lib, refits["base"], refits["camera_pose"], refit_iterations,
+                                                    camera=suspect)
     seconds["confirm"] = time.time() - t
     validation, noise = _validate(lib, refits, val_frames, ranking, thr, floors)
 
     # ------------------------------------------------------------------ 4. decide
     decision, kind, indist = decide(validation, {sc.name: sc.dof for sc in ranking.scores}, thr, noise=noise,
                                     single_camera=loc.single_camera if loc.single_camera in inp.train_cameras else None,
-                                    prefer=preferred_candidates(motion, list(validation)))
+                                    prefer=preferred_candidates(motion, list(validation)), silhouette_suspect=suspect)
     separation = []
     if kind == "physics":
         from toolkit.discovery.separation import separating_observation
@@ -371,12 +382,18 @@ def discover(source, out_dir: Optional[str | Path] = None, *, candidates: Option
     if inp.ground_truth and inp.ground_truth.get("params"):
         params["truth"] = {"params": inp.ground_truth.get("params"), "v0": inp.ground_truth.get("v0")}
     verdict = _verdict(decision, kind, indist, final, gap, validation, loc, separation, refits, motion)
+    if kind == "observation" and suspect is not None:
+        verdict += f" The masks say so too: {silhouettes['message']}."
+        if (inp.meta or {}).get("source") == "stage0":
+            verdict += (" Stage 0 fitted the geometry to the same camera and absorbed part of the error, so the refitted "
+                        "shift understates it: recalibrate that camera rather than apply the shift.")
     seconds["total"] = time.time() - t_start
     result = DiscoveryResult(verdict=verdict, decision=decision, decision_kind=kind, indistinguishable=indist, localization=loc,
                              ranking=ranking, refits=refits, validation=validation, final=final, truth_refit=truth_refit,
                              metrics=metrics, gap=gap, params=params, thresholds=thr, truth=truth, holdout_frames=val_frames,
                              seconds=seconds, lib=lib, plastic_lib=plib, floors=floors or {}, separation=separation,
-                             joint=joint, noise=noise, motion=None if motion is None else motion.to_dict())
+                             joint=joint, noise=noise, motion=None if motion is None else motion.to_dict(),
+                             silhouettes=silhouettes)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
