@@ -11,6 +11,11 @@ should be named. One JSON line per scene, then a summary line::
 
     python benchmarks/silhouette_check.py --out D                     # D/scenes is reused when present
     python benchmarks/silhouette_check.py --null 4 --size tiny --out D
+    python benchmarks/silhouette_check.py --out D --variants D/scenes/none-none-neo_hookean-slide-s0
+
+``--variants SCENE...`` checks instead the image variants of :data:`VARIANTS`
+(``toolkit.synthetic.variants``: another renderer, mask noise, a photometric change, calibration
+errors of every camera) of the given scenes, written to ``OUT/variants``.
 
 Benchmarks are never part of the test suite.
 """
@@ -25,6 +30,29 @@ import time
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+#: name -> VariantSpec fields of the checked image variants
+VARIANTS = {"points": {"render_style": "points"}, "mask_noise_0.2": {"mask_noise": 0.2}, "mask_noise_0.5": {"mask_noise": 0.5},
+            "photometric": {"gamma": 1.3, "blur_px": 1.0, "noise_std": 0.03}, "calib_0.5deg": {"calibration_deg": 0.5},
+            "calib_1cm": {"calibration_m": 0.01}, "calib_2.5cm": {"calibration_m": 0.025}}
+
+
+def check_variants(scenes: list[pathlib.Path], out: pathlib.Path) -> None:
+    """One JSON line per scene and variant of :data:`VARIANTS` (the variants are written once)."""
+    from toolkit.data.layout import load_scene
+    from toolkit.pipeline import training_frames
+    from toolkit.scene.silhouette_agreement import check_scene
+    from toolkit.synthetic.variants import VariantSpec, make_variant
+
+    for src in scenes:
+        for name, fields in VARIANTS.items():
+            dst = out / "variants" / f"{src.name}-{name}"
+            if not (dst / "variant.json").is_file():
+                make_variant(src, dst, VariantSpec(**fields))
+            scene = load_scene(dst)
+            check = check_scene(scene, "sparse", range(training_frames(scene, None)))
+            print(json.dumps({"benchmark": "silhouette_check", "variant": name, "scene": src.name, **fields,
+                              **check.to_dict()}), flush=True)
+
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -32,6 +60,8 @@ def main() -> None:
     p.add_argument("--size", default="full", choices=["tiny", "full"])
     p.add_argument("--out", type=pathlib.Path, required=True, help="folder for the generated scenes")
     p.add_argument("--shard", default="0/1", help="I/N: this process checks every N-th scene from the I-th")
+    p.add_argument("--variants", nargs="*", type=pathlib.Path, default=None, metavar="SCENE",
+                   help="check the image variants of these scene folders instead of the suite")
     p.add_argument("--summary", nargs="*", type=pathlib.Path, default=None,
                    help="only summarize these JSON-line files (of earlier shards) and exit")
     args = p.parse_args()
@@ -46,6 +76,15 @@ def main() -> None:
         p.error(f"--shard must be I/N with 0 <= I < N, got {args.shard!r}")
     if args.null < 0:
         p.error(f"--null must be 0 or more, got {args.null}")
+    if args.variants is not None:
+        missing = [str(f) for f in args.variants if not (f / "all_data.json").is_file()]
+        if missing or not args.variants:
+            p.error(f"--variants needs scene folders with all_data.json; not found: {missing or 'no folder given'}")
+        from toolkit.verbosity import configure_output
+
+        configure_output(False)
+        check_variants(args.variants, args.out)
+        return
 
     import numpy as np
     import torch
