@@ -142,3 +142,19 @@ def test_discovery_reads_the_physics_input_masks():
     bad = silhouette_check(moved)
     assert bad["suspect"] == 0 and bad["pairs"]["1-2"] < 0.002
     assert silhouette_check(SimpleNamespace(cameras=ring_cameras(), masks=None, train_cameras=[0, 1, 2], n_train=1)) is None
+
+
+def test_shared_projections_give_the_pairwise_numbers():
+    """silhouette_agreement projects each camera once per frame for all pairs; the slow, obvious
+    pair_uncovered (one pair, its own projections) gives the same shares."""
+    from toolkit.scene.silhouette_agreement import _all_pairs_uncovered
+
+    masks = {k: v[0] for k, v in sphere_masks(ring_cameras()).items()}
+    cams = ring_cameras(shift0=(0.0, 0.02, 0.01))
+    lo, hi = np.full(3, -0.08), np.full(3, 0.08)
+    foot = {c: 0.003 for c in range(3)}
+    fast = _all_pairs_uncovered(cams, masks, [(0, 1), (0, 2), (1, 2)], lo, hi, 0.0025, foot)
+    for pair, shares in fast.items():
+        slow = pair_uncovered(cams, masks, pair, lo, hi, 0.0025, {c: 0.0025 / 0.003 for c in pair})
+        assert shares == pytest.approx(slow, abs=1e-12)
+    assert fast[(0, 1)][0] > 0.01 and fast[(1, 2)] == pytest.approx((0.0, 0.0), abs=0.002)

@@ -147,6 +147,34 @@ def pair_uncovered(cameras, masks: dict[int, torch.Tensor], pair: tuple[int, int
     return out[0], out[1]
 
 
+def _all_pairs_uncovered(cameras, masks: dict[int, torch.Tensor], pairs: list[tuple[int, int]], lo: np.ndarray,
+                         hi: np.ndarray, voxel: float, foot: dict[int, float]) -> dict[tuple[int, int], tuple[float, float]]:
+    """:func:`pair_uncovered` of every pair on one grid, each camera projected once (the same
+    numbers; the tests compare the two)."""
+    points = _grid(lo, hi, voxel)
+    hits, pix = {}, {}
+    for c in {c for pair in pairs for c in pair}:
+        u, v, ok = _pixels(cameras, c, points, tuple(masks[c].shape))
+        hit = torch.zeros(points.shape[0], dtype=torch.bool)
+        hit[ok] = masks[c][v[ok], u[ok]]
+        hits[c], pix[c] = hit, (u, v)
+    out = {}
+    for pair in pairs:
+        inside = hits[pair[0]] & hits[pair[1]]  # a voxel inside both masks lies on the image of both
+        shares = []
+        for c in pair:
+            u, v = pix[c]
+            covered = torch.zeros_like(masks[c])
+            covered[v[inside], u[inside]] = True
+            k = int((voxel / foot[c]) // 2) * 2 + 1
+            if k > 1:
+                covered = torch.nn.functional.max_pool2d(covered.float()[None, None], k, 1, k // 2)[0, 0] > 0
+            n = int(masks[c].sum())
+            shares.append(0.0 if n == 0 else 1.0 - float((covered & masks[c]).sum()) / n)
+        out[pair] = (shares[0], shares[1])
+    return out
+
+
 def _bounds(cameras, cams: Sequence[int], masks: dict[int, torch.Tensor]) -> tuple[np.ndarray, np.ndarray, dict[int, float]]:
     """A box holding the object: around the point nearest the rays through the masks' centroids,
     as wide as the largest mask seen at that distance (twice over); and each camera's pixel
@@ -214,8 +242,7 @@ def silhouette_agreement(cameras, masks: dict[int, Sequence[torch.Tensor]] | tor
         used.append(f)
         lo, hi, foot = _bounds(cameras, cams, m)
         voxel = max(min(foot.values()) / 2, float(np.prod(hi - lo) / max_voxels) ** (1 / 3))
-        for pair in totals:
-            a, b = pair_uncovered(cameras, m, pair, lo, hi, voxel, {c: voxel / foot[c] for c in pair})
+        for pair, (a, b) in _all_pairs_uncovered(cameras, m, list(totals), lo, hi, voxel, foot).items():
             totals[pair].append((a + b) / 2)
     if voxel is None:
         raise ValueError(f"no frame of {frames} shows the object in every camera of {cams}")
