@@ -47,6 +47,7 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
     # the fitting cameras' masks were checked against their poses before anything was trained
     silhouettes = json.loads((out / "silhouettes.json").read_text())
     assert silhouettes["cameras"] == [1, 5, 9] and silhouettes["suspect"] is None and "message" in silhouettes
+    assert summary["silhouettes"] == silhouettes and "silhouettes disagree" not in printed
     # a rerun finds the finished fit and does not train again
     mtime = (out / "physics" / "checkpoints" / "last.ckpt").stat().st_mtime
     assert main(args) == 0

@@ -39,3 +39,13 @@ def test_an_effect_the_truth_lacks_has_no_truth():
     rows = {r["parameter"]: r for r in summary["parameters"]}
     assert rows["air_drag.linear"]["truth"] is None and rows["air_drag.quadratic"]["estimate"] == 0.0
     assert len(summary["parameters"]) == 7
+
+
+def test_a_camera_the_masks_contradict_is_repeated_at_the_end():
+    """The silhouette check's warning comes before stage 0; the closing table repeats it, and says
+    nothing when the cameras agree."""
+    summary = run_summary(_module({}, {}), {}, {}, [])
+    msg = "camera 5's silhouettes disagree with the other fitting cameras'"
+    table = format_summary({**summary, "silhouettes": {"disagree": True, "suspect": 5, "message": msg}})
+    assert f"WARNING {msg}" in table
+    assert "silhouettes" not in format_summary({**summary, "silhouettes": {"disagree": False, "message": "agree"}})

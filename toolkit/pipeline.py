@@ -488,6 +488,8 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
     summary = run_summary(module, evaluation, timings, files)
     summary["grid_check"] = grid
+    if (run / "silhouettes.json").is_file():  # the cameras' agreement, checked before stage 0
+        summary["silhouettes"] = json.loads((run / "silhouettes.json").read_text())
     annotate_grid(summary["parameters"], grid, module.estimate()["params"])
     write_json(run / "summary.json", summary)
     return summary

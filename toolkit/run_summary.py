@@ -78,6 +78,9 @@ def format_summary(summary: dict) -> str:
         from toolkit.scene.coverage import lost_object_message
 
         lines.append("WARNING " + lost_object_message(coverage))
+    silhouettes = summary.get("silhouettes") or {}
+    if silhouettes.get("disagree"):  # the warning before stage 0 has scrolled away by now
+        lines.append("WARNING " + silhouettes.get("message", "the fitting cameras' silhouettes disagree"))
     lines.append("timings (s): " + ", ".join(f"{k} {v}" for k, v in summary["timings_s"].items()))
     refined = summary.get("refined")
     if refined and refined.get("failed"):
