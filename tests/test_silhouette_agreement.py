@@ -127,6 +127,14 @@ def test_check_scene_writes_the_record_and_warns(tmp_path, caplog):
     assert any("camera 0's silhouettes disagree" in r.message for r in caplog.records)
 
 
+def test_check_scene_reads_at_most_max_frames_evenly_spaced(tmp_path):
+    masks = sphere_masks(ring_cameras())
+    long = {k: v * 40 for k, v in masks.items()}  # the same instant 40 times
+    scene = _Scene(ring_cameras(), long)
+    check = check_scene(scene, [0, 1, 2], range(40), max_frames=5, max_voxels=VOXELS)
+    assert check.frames == [0, 10, 20, 29, 39] and check.suspect is None
+
+
 def test_discovery_reads_the_physics_input_masks():
     """:func:`toolkit.discovery.camera.silhouette_check` on a physics input's claimed cameras and
     its (C, T, H, W) uint8 masks: it names the moved camera, or says nothing is wrong."""

@@ -259,16 +259,22 @@ def silhouette_agreement(cameras, masks: dict[int, Sequence[torch.Tensor]] | tor
                                seconds=time.perf_counter() - t0)
 
 
-def check_scene(scene, cams: Sequence[int] | str, frames: Sequence[int], out=None, **options) -> Optional[SilhouetteAgreement]:
+def check_scene(scene, cams: Sequence[int] | str, frames: Sequence[int], out=None, max_frames: int = 16,
+                **options) -> Optional[SilhouetteAgreement]:
     """:func:`silhouette_agreement` on a scene's own masks (``scene.load_mask > 0.5``) of the
     cameras ``cams`` (indices, ``"sparse"`` or ``"all"``, as
     :func:`toolkit.data.datamodule.resolve_cameras`), before any model is trained: writes ``out``
     (JSON, when given) and logs a warning with
     :meth:`SilhouetteAgreement.message` when the cameras disagree. ``None`` (and a log line) when
-    the check cannot run: a scene without masks, or no frame where every camera sees the object."""
+    the check cannot run: a scene without masks, or no frame where every camera sees the object.
+    At most ``max_frames`` of ``frames``, evenly spaced, are read (a long high-resolution capture's
+    masks would otherwise all sit in memory at once)."""
     import logging
 
     log = logging.getLogger(__name__)
+    frames = [int(f) for f in frames]
+    if len(frames) > max_frames:
+        frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
     try:
         from toolkit.data.datamodule import resolve_cameras
 
@@ -278,7 +284,7 @@ def check_scene(scene, cams: Sequence[int] | str, frames: Sequence[int], out=Non
     except Exception as exc:  # advice, never a reason to stop a run
         log.info("silhouette check skipped: %s", exc)
         return None
-    check.frames = [int(list(frames)[i]) for i in check.frames]
+    check.frames = [frames[i] for i in check.frames]
     if out is not None:
         from toolkit.atomic import write_json
 
