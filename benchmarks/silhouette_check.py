@@ -86,10 +86,8 @@ def main() -> None:
         check_variants(args.variants, args.out)
         return
 
-    import numpy as np
     import torch
 
-    from toolkit.cameras import Cameras
     from toolkit.verbosity import configure_output
 
     configure_output(False)  # stdout holds only the JSON lines (no Warp banner or module-load lines)
@@ -111,12 +109,7 @@ def main() -> None:
         frames = range(training_frames(scene, None))
         masks = {c: [torch.as_tensor(scene.load_mask(c, f) > 0.5) for f in frames] for c in cams}
         moved = cams[PERTURBED_CAMERA] if hs.effect == "camera_pose" else None
-        w2c = scene.cameras.w2c.clone()
-        if moved is not None:  # the claimed centre moves by e: t' = t - R e
-            e = torch.tensor(np.asarray(hs.truth_strengths_vector()), dtype=w2c.dtype)
-            w2c[moved, :3, 3] -= w2c[moved, :3, :3] @ e
-        claimed = Cameras._trusted(scene.cameras.K, w2c, scene.cameras.width, scene.cameras.height,
-                                   scene.cameras.near, scene.cameras.far)
+        claimed = scene.cameras if moved is None else scene.cameras.with_centre_moved(moved, hs.truth_strengths_vector())
         t = time.perf_counter()
         check = silhouette_agreement(claimed, masks, cams, frames)
         rec = {"benchmark": "silhouette_check", "scene": hs.name, "effect": hs.effect, "level": hs.level, "size": args.size,

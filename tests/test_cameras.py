@@ -311,3 +311,13 @@ def test_bad_sizes_and_planes():
         Cameras.from_opengl_c2w(torch.eye(3), fx=10.0, width=4, height=4)
     with pytest.raises(ValueError, match="not orthonormal"):
         Cameras.from_opengl_c2w(torch.diag(torch.tensor([1.0, 1.0, 1.5, 1.0])), fx=10.0, width=4, height=4)
+
+
+def test_with_centre_moved_moves_one_centre_and_keeps_every_orientation():
+    cams = Cameras.look_at(eye=[[1.0, 0.5, 0.0], [0.0, 0.5, 1.0]], target=(0.0, 0.0, 0.0), fov_y_deg=40, width=32, height=32)
+    moved = cams.with_centre_moved(1, [0.02, -0.01, 0.03])
+    torch.testing.assert_close(moved.centers[1] - cams.centers[1], torch.tensor([0.02, -0.01, 0.03], dtype=cams.centers.dtype),
+                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(moved.centers[0], cams.centers[0])
+    torch.testing.assert_close(moved.R, cams.R)
+    torch.testing.assert_close(moved.K, cams.K)

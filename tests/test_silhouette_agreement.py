@@ -23,11 +23,7 @@ def ring_cameras(shift0=(0.0, 0.0, 0.0)) -> Cameras:
         a, e = 2 * math.pi * k / 3, math.radians(25)
         eyes.append([math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)])
     cams = Cameras.cat([Cameras.look_at(eye, (0, 0, 0), fov_y_deg=12.0, width=SIZE, height=SIZE) for eye in eyes])
-    if any(shift0):
-        w2c = cams.w2c.clone()
-        w2c[0, :3, 3] -= w2c[0, :3, :3] @ torch.tensor(shift0, dtype=w2c.dtype)
-        cams = Cameras._trusted(cams.K, w2c, SIZE, SIZE, cams.near, cams.far)
-    return cams
+    return cams.with_centre_moved(0, shift0) if any(shift0) else cams
 
 
 def sphere_masks(cams: Cameras, centre=(0.0, 0.0, 0.0)) -> dict[int, list[torch.Tensor]]:

@@ -490,6 +490,15 @@ class Cameras:
     def to(self, device: torch.device | str) -> "Cameras":
         return Cameras._trusted(self.K.to(device), self.w2c.to(device), self.width, self.height, self.near, self.far)
 
+    def with_centre_moved(self, index: int, offset: ArrayLike) -> "Cameras":
+        """The same cameras with camera ``index``'s centre moved by ``offset`` (3,) metres in the
+        world frame and its orientation kept (a calibration error of the position alone):
+        ``t' = t - R offset``."""
+        w2c = self.w2c.clone()
+        e = torch.as_tensor(offset, dtype=w2c.dtype, device=w2c.device).reshape(3)
+        w2c[index, :3, 3] = w2c[index, :3, 3] - w2c[index, :3, :3] @ e
+        return Cameras._trusted(self.K.clone(), w2c, self.width, self.height, self.near, self.far)
+
     @classmethod
     def cat(cls, cameras: Sequence["Cameras"]) -> "Cameras":
         """Concatenate batches; all must share width, height, near, far and device."""

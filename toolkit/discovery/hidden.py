@@ -222,17 +222,10 @@ class HiddenScene:
         ``ground_truth["hidden_effect"]``; returns ``inp`` (changed in place).
         ``cameras_observed``: the input was built from a scene whose cameras already carry the
         error (:func:`toolkit.discovery.from_images.observed_scene`), so it is not applied again."""
-        from toolkit.cameras import Cameras
-
         if self.effect == "timing":
             inp.times = torch.arange(inp.n_frames, dtype=torch.float32) / 24.0
         if self.effect == "camera_pose" and not cameras_observed:
-            cams = inp.cameras
-            c = inp.train_cameras[PERTURBED_CAMERA]
-            w2c = cams.w2c.clone()
-            e = torch.as_tensor(self.truth_strengths_vector(), dtype=torch.float32)
-            w2c[c, :3, 3] = w2c[c, :3, 3] - w2c[c, :3, :3] @ e  # centre moved by +e (world)
-            inp.cameras = Cameras(cams.K.clone(), w2c, cams.width, cams.height, cams.near, cams.far)
+            inp.cameras = inp.cameras.with_centre_moved(inp.train_cameras[PERTURBED_CAMERA], self.truth_strengths_vector())
         gt = dict(inp.ground_truth or {})
         gt["hidden_effect"] = {"candidate": None if self.effect == "none" else self.effect, "level": self.level,
                                "strengths": self.truth_strengths(), "expected": self.expected, "scene": self.name}
