@@ -27,6 +27,7 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from toolkit.atomic import write_json  # noqa: E402
 from toolkit.benchmark.tables import collect_records, record_from_summary, write_records_tables  # noqa: E402
 
 
@@ -34,10 +35,24 @@ def _key(rec: dict) -> tuple:
     return rec["scene"], rec["strategy"], rec.get("cameras"), rec.get("variant")
 
 
+def _leaf_rounds(path: str, settings: dict) -> dict:
+    """``{round: its own settings}`` oldest first: a combined table's rounds are listed one by one
+    (they nested one level deeper with each combination before)."""
+    inner = settings.get("rounds") if isinstance(settings, dict) else None
+    if not isinstance(inner, dict):
+        return {path: settings}
+    flat: dict = {}
+    for sub, sub_settings in inner.items():
+        flat.update(_leaf_rounds(sub, sub_settings))
+    for scene, summary in (settings.get("single runs") or {}).items():
+        flat[f"{scene}={summary}"] = {"from": "single run summary"}
+    return flat
+
+
 def combine(rounds: list[pathlib.Path], summaries: list[tuple[str, pathlib.Path]], strategy: str = "progressive",
             cameras: int = 3) -> tuple[list[dict], dict]:
     """Records of the rounds (later ones win) and of the single-run summaries; and the settings
-    of each round, keyed by its file name."""
+    of each round, keyed by its file name, with a combined table's own rounds listed in its place."""
     records: dict[tuple, dict] = {}
     settings = {}
     for path in rounds:
@@ -50,7 +65,8 @@ def combine(rounds: list[pathlib.Path], summaries: list[tuple[str, pathlib.Path]
             data = json.loads(path.read_text())
             if "records" not in data:
                 raise SystemExit(f"{path} has no 'records': export it with a projo4d benchmark that writes them")
-            settings[str(path)], found = data.get("settings") or {}, data["records"]
+            found = data["records"]
+            settings.update(_leaf_rounds(str(path), data.get("settings") or {}))
         for rec in found:
             records[_key(rec)] = rec
     for scene, path in summaries:
@@ -83,8 +99,12 @@ def main(argv: list[str] | None = None) -> int:
         if not path.exists():
             p.error(f"{path} does not exist")
     records, settings = combine(args.rounds, args.summary, args.strategy)
-    write_records_tables(records, args.out, settings={"rounds": settings, "single runs": {s: str(f) for s, f in args.summary}},
-                         title=args.title)
+    singles = {s: str(f) for s, f in args.summary}
+    write_records_tables(records, args.out, settings={"rounds": ", ".join(settings), "single runs": singles}, title=args.title)
+    js = args.out / "tables.json"
+    data = json.loads(js.read_text())
+    data["settings"]["rounds"] = settings  # each round's own settings, in the JSON only (one long line in the table)
+    write_json(js, data)
     per_material: dict[str, int] = {}
     for r in records:
         per_material[r["material"]] = per_material.get(r["material"], 0) + 1

@@ -57,3 +57,21 @@ def test_bad_inputs_are_named(tmp_path, capsys):
     with pytest.raises(SystemExit, match="has no 'records'"):
         mod.main([str(no_records), "--out", str(tmp_path / "out")])
     assert not (tmp_path / "out").exists()
+
+
+def test_a_combined_table_lists_its_rounds_flat(tmp_path):
+    """Combining a combined table again names every original round once, oldest first (they used to nest one
+    level deeper with each combination), and keeps each round's own settings in the JSON."""
+    mod = _script()
+    a, b, c = (tmp_path / f"{n}.json" for n in "abc")
+    a.write_text(json.dumps({"settings": {"size": "full", "sim": {"dx": 0.02}}, "records": [_rec("neo_hookean/000", 0.6, 1.0)]}))
+    b.write_text(json.dumps({"settings": {"size": "full", "sim": {"dx": 0.01}}, "records": [_rec("neo_hookean/001", 0.2, 2.0)]}))
+    c.write_text(json.dumps({"settings": {"size": "small"}, "records": [_rec("neo_hookean/000", 0.1, 3.0)]}))
+    assert mod.main([str(a), str(b), "--out", str(tmp_path / "ab")]) == 0
+    assert mod.main([str(tmp_path / "ab" / "tables.json"), str(c), "--out", str(tmp_path / "abc")]) == 0
+    tables = json.loads((tmp_path / "abc" / "tables.json").read_text())
+    assert list(tables["settings"]["rounds"]) == [str(a), str(b), str(c)]
+    assert tables["settings"]["rounds"][str(b)]["sim"] == {"dx": 0.01}
+    md = (tmp_path / "abc" / "tables.md").read_text()
+    assert f"- **rounds**: {a}, {b}, {c}\n" in md
+    assert {r["scene"]: r["errors"]["E"] for r in tables["records"]} == {"neo_hookean/000": 0.1, "neo_hookean/001": 0.2}
