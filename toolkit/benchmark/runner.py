@@ -286,7 +286,8 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     from toolkit.benchmark.variant_jobs import base_scene, variant_scenes
 
     scene_by_name = {s.name: s for s in list(spec.scenes) + variant_scenes(spec.scenes, spec.variants, bench)}
-    slow = sharing_slowdown(jobs_per_gpu) if gpus else 1.0
+    def slow_of(kind: str) -> float:
+        return sharing_slowdown(jobs_per_gpu, kind) if gpus else 1.0
     calib = Calibration()
     particles: dict[str, int] = {}
     for j in jobs:
@@ -300,6 +301,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     def price(j: dict, n_part: Optional[int]) -> None:
         sc = base_scene(scene_by_name[j["scene"]])  # a variant: priced as its source scene
         info = scene_info(sc.path, None if Path(sc.path, "all_data.json").is_file() else (sc.generate or {}).get("spec"))
+        slow = slow_of(j["kind"])
         model[j["id"]] = estimate_job(j, info, profile, n_part) * slow
         refine_model[j["id"]] = refinement_estimate(j, info, profile, n_part) * slow
         j["extra"]["estimate_s"] = round(model[j["id"]], 1)
@@ -332,8 +334,10 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
          **({"estimated_wall_s_if_all_refined": round(refined_wall, 0), "refinable_fits": len(refinable)}
             if refined_wall is not None else {}),
          note="estimates are rough until jobs of each kind have finished (basis 'model' vs 'calibrated'); the wall "
-              "time follows the dependencies (stage 0 before its fits)" + (f"; {jobs_per_gpu} jobs sharing a GPU are "
-                                                                          f"assumed {slow:.2f}x slower each" if slow != 1 else "")
+              "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs sharing a GPU a fit "
+                                                                          f"is assumed {slow_of('fit'):.2f}x slower and other "
+                                                                          f"jobs {slow_of('generate'):.2f}x"
+                                                                          if slow_of("fit") != 1 else "")
               + (f"; a fit whose grid check fails is fitted again at half the grid spacing (refine_grid), about "
                  f"{profile.refine_factor:g}x its physics stage more: estimated_wall_s_if_all_refined is the wall time "
                  "if every one does" if refined_wall is not None else ""))
