@@ -32,8 +32,8 @@ import statistics
 import sys
 from pathlib import Path
 
-_NOTE = re.compile(r"(?:(\d+) jobs sharing a GPU are assumed ([0-9.]+)x slower each"
-                   r"|with (\d+) jobs sharing a GPU a fit is assumed ([0-9.]+)x slower)")
+#: the plan note's fit slowdown: runs before 2026-11-28 named one for every job, later ones one for fits
+_NOTE = re.compile(r"jobs sharing a GPU are assumed ([0-9.]+)x slower each|a fit is assumed ([0-9.]+)x slower")
 
 
 def _events(path: Path) -> list[dict]:
@@ -52,7 +52,7 @@ def assumed_slowdown(plan: dict) -> float:
     m = _NOTE.search(plan.get("note", ""))
     if not m:
         return 1.0
-    return float(m.group(2) or m.group(4))
+    return float(m.group(1) or m.group(2))
 
 
 def mean_sharing(job: str, spans: dict[str, tuple[float, float, str]]) -> float:

@@ -124,3 +124,30 @@ def test_estimate_check_recovers_the_sharing_from_an_event_log(tmp_path, capsys)
     assert summary["fits_with_sharing"] == 2 and summary["median_overlap"] == pytest.approx(0.07, abs=0.01)
     with pytest.raises(SystemExit):
         mod.main([str(tmp_path / "missing.jsonl")])
+
+
+def test_the_plan_prices_fits_at_the_sharing_they_will_have(tmp_path, capsys):
+    """Two fits planned on one GPU with 5 slots share it two ways, not five: the plan's fit estimate is
+    the alone estimate times sharing_slowdown(2, "fit"), and its note names both numbers, which
+    benchmarks/estimate_check.py reads back."""
+    from toolkit.benchmark.estimate import sharing_slowdown
+
+    args = ["benchmark", "--suite", str(tmp_path / "suite"), "--generate", "--families", "neo_hookean",
+            "--per-family", "2", "--size", "full", "--strategies", "progressive", "--out", str(tmp_path / "bench"),
+            "--dry-run", "--estimate-for", "cuda", "--gpus", "1", "--jobs-per-gpu", "5", "--no-refine-grid"]
+    assert main(args) == 0
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    plan = next(e for e in events if e.get("event") == "plan")
+    fit = next(e["est_s"] for e in events if e.get("event") == "estimate" and e["job"].startswith("fit:"))
+    assert "(2 fits) a fit is assumed" in plan["note"]
+    assert main(args[:-2] + ["1", "--no-refine-grid"]) == 0  # one job a GPU: the fit alone
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    alone = next(e["est_s"] for e in events if e.get("event") == "estimate" and e["job"].startswith("fit:"))
+    assert fit == pytest.approx(alone * sharing_slowdown(2, "fit"), rel=0.01)
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("estimate_check", Path(__file__).resolve().parents[1] / "benchmarks" / "estimate_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.assumed_slowdown(plan) == pytest.approx(sharing_slowdown(2, "fit"), abs=0.01)

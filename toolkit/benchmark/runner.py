@@ -286,8 +286,12 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     from toolkit.benchmark.variant_jobs import base_scene, variant_scenes
 
     scene_by_name = {s.name: s for s in list(spec.scenes) + variant_scenes(spec.scenes, spec.variants, bench)}
+    # fits to run share a GPU with at most as many other fits as there are left for each GPU
+    fits_per_gpu = math.ceil(sum(1 for j in jobs if j["kind"] == "fit" and not job_is_done(j)) / max(1, len(gpus or [])))
+
     def slow_of(kind: str) -> float:
-        return sharing_slowdown(jobs_per_gpu, kind) if gpus else 1.0
+        k = min(jobs_per_gpu, max(1, fits_per_gpu)) if kind == "fit" else jobs_per_gpu
+        return sharing_slowdown(k, kind) if gpus else 1.0
     calib = Calibration()
     particles: dict[str, int] = {}
     for j in jobs:
@@ -334,7 +338,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
          **({"estimated_wall_s_if_all_refined": round(refined_wall, 0), "refinable_fits": len(refinable)}
             if refined_wall is not None else {}),
          note="estimates are rough until jobs of each kind have finished (basis 'model' vs 'calibrated'); the wall "
-              "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs sharing a GPU a fit "
+              "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs a GPU ({min(jobs_per_gpu, max(1, fits_per_gpu))} fits) a fit "
                                                                           f"is assumed {slow_of('fit'):.2f}x slower and other "
                                                                           f"jobs {slow_of('generate'):.2f}x"
                                                                           if slow_of("fit") != 1 else "")
