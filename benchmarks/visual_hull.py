@@ -11,6 +11,7 @@ continuum's (``particles.ply``, e.g. a run's ``continuum/particles.ply``, and it
 
     python benchmarks/visual_hull.py SCENE --continuum RUN/continuum/particles.ply
     python benchmarks/visual_hull.py SCENE --frame 5 --cameras 0 3 6
+    python benchmarks/visual_hull.py SCENE --cameras 1 5 9 --rank-cameras 0 6   # which camera to add
 
 Volumes in litres, extents in metres (x, y, z of the scene's frame). Benchmarks are never part of
 the test suite.
@@ -51,6 +52,27 @@ def hull_of(scene, cameras, frame: int, lo, hi, voxel: float) -> dict:
             **({"reaches_box_edge": True} if touches else {})}
 
 
+def rank_cameras(scene, cameras, frames, box, voxel: float) -> list[dict]:
+    """The scene's other cameras ranked by how much each, added to ``cameras``, carves the hull:
+    ``[{"camera", "volume_L" (mean over ``frames``), "per_frame_L"}]``, smallest hull first, with
+    ``"without": True`` on an entry for ``cameras`` alone (the reference). ``box(frame)`` gives the
+    search box ``(lo, hi)`` of a frame (the body moves). Which camera to add to a fit is a question
+    the masks answer without any model."""
+    import numpy as np
+
+    def volumes(cams):
+        return [hull_of(scene, cams, f, *box(f), voxel)["volume_L"] for f in frames]
+
+    base = volumes(cameras)
+    out = [{"camera": None, "without": True, "volume_L": round(float(np.mean(base)), 4), "per_frame_L": base}]
+    for cam in range(scene.n_cameras):
+        if cam in cameras:
+            continue
+        v = volumes(list(cameras) + [cam])
+        out.append({"camera": cam, "volume_L": round(float(np.mean(v)), 4), "per_frame_L": v})
+    return sorted(out, key=lambda r: r["volume_L"])
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scene", type=pathlib.Path, help="a scene folder (images, masks, cameras)")
@@ -60,6 +82,9 @@ def main() -> None:
     p.add_argument("--voxel", type=float, default=0.0025, help="voxel edge (m; default 0.0025)")
     p.add_argument("--margin", type=float, default=0.1, help="search box around the true body or continuum (m)")
     p.add_argument("--continuum", type=pathlib.Path, default=None, help="a continuum's particles.ply to compare")
+    p.add_argument("--rank-cameras", type=int, nargs="+", default=None, metavar="FRAME",
+                   help="also rank the other cameras by how much each, added to --cameras, carves the hull at these "
+                        "frames (mean volume; e.g. 0 6: before and during a slide)")
     args = p.parse_args()
 
     import numpy as np
@@ -101,6 +126,16 @@ def main() -> None:
         spacing = ((gt.get("simulation") or {}).get("particle_volume"))
         if spacing:
             out["truth_particles"]["volume_L"] = round(len(truth) * float(spacing) * 1e3, 4)
+    if args.rank_cameras:
+        for f in args.rank_cameras:
+            scene.check_frame(f)
+        def box(f):
+            pts = args.scene / "gt_points" / f"frame_{f:03d}.ply"
+            ref_f = read_ply_points(pts) if pts.is_file() else ref  # without the truth: the body of --frame
+            return ref_f.min(0) - args.margin, ref_f.max(0) + args.margin
+
+        out["camera_ranking"] = {"frames": list(args.rank_cameras),
+                                 "ranking": rank_cameras(scene, list(cameras), args.rank_cameras, box, args.voxel)}
     if body is not None:
         stats_file = args.continuum.parent / "stats.json"
         vol = json.loads(stats_file.read_text()).get("volume") if stats_file.is_file() else None

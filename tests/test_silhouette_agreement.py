@@ -162,3 +162,29 @@ def test_shared_projections_give_the_pairwise_numbers():
         slow = pair_uncovered(cams, masks, pair, lo, hi, 0.0025, {c: 0.0025 / 0.003 for c in pair})
         assert shares == pytest.approx(slow, abs=1e-12)
     assert fast[(0, 1)][0] > 0.01 and fast[(1, 2)] == pytest.approx((0.0, 0.0), abs=0.002)
+
+
+def test_the_camera_that_carves_most_is_ranked_first():
+    """benchmarks/visual_hull.py --rank-cameras: with two ring cameras 120 degrees apart fitting a
+    sphere, the third ring camera (another 120 degrees round) carves more of their hull than a camera
+    10 degrees from one of them, and every added camera carves something; the hulls stay above the
+    sphere's own volume."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "visual_hull.py"
+    spec = importlib.util.spec_from_file_location("visual_hull", path)
+    hull = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hull)
+    e = math.radians(25)
+    near = [math.cos(e) * math.cos(math.radians(10)), math.sin(e), math.cos(e) * math.sin(math.radians(10))]
+    cams = Cameras.cat([ring_cameras(), Cameras.look_at(near, (0, 0, 0), fov_y_deg=12.0, width=SIZE, height=SIZE)])
+    scene = _Scene(cams, sphere_masks(cams))
+    lo, hi = np.full(3, -2 * RADIUS), np.full(3, 2 * RADIUS)
+    ranking = hull.rank_cameras(scene, [0, 1], [0], lambda f: (lo, hi), voxel=0.003)
+    order = [r["camera"] for r in ranking]
+    assert order == [2, 3, None]
+    sphere_l = 4 / 3 * math.pi * RADIUS ** 3 * 1e3
+    volumes = {r["camera"]: r["volume_L"] for r in ranking}
+    assert sphere_l < volumes[2] < volumes[3] < volumes[None]
+    assert volumes[None] - volumes[2] > 2 * (volumes[None] - volumes[3])  # 0.100 L against 0.033 L
