@@ -302,8 +302,12 @@ def main(argv=None) -> int:
     if args.cameras is not None:
         if args.geometry != "stage0":
             p.error("--cameras chooses stage 0's fitting cameras: use it with --geometry stage0")
-        if len(set(args.cameras)) != len(args.cameras) or len(args.cameras) < 2 or min(args.cameras) < 0:
-            p.error(f"--cameras takes two or more distinct 0-based camera indices, got {args.cameras}")
+        from toolkit.discovery.hidden import SIZES
+
+        n_cams = SIZES["tiny" if args.small else "full"]["scene"]["n_cameras"]
+        if len(set(args.cameras)) != len(args.cameras) or len(args.cameras) < 2 or not all(0 <= c < n_cams for c in args.cameras):
+            p.error(f"--cameras takes two or more distinct 0-based camera indices, got {args.cameras}; the scenes have "
+                    f"{n_cams} cameras (0-{n_cams - 1})")
     if args.null is None:
         args.null = 12 if args.small else 20
     logging.basicConfig(level=logging.WARNING)

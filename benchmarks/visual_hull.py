@@ -32,17 +32,12 @@ def hull_of(scene, cameras, frame: int, lo, hi, voxel: float) -> dict:
     import numpy as np
     import torch
 
+    from toolkit.scene.silhouette_agreement import inside_masks
+
     axes = [np.arange(lo[i], hi[i], voxel) for i in range(3)]
     centres = torch.tensor(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), dtype=torch.float32)
-    inside = torch.ones(len(centres), dtype=torch.bool)
-    for cam in cameras:
-        mask = torch.as_tensor(scene.load_mask(cam, frame) > 0.5)
-        uv, depth = scene.cameras[[cam]].project(centres)
-        u, v = uv[0, :, 0].floor().long(), uv[0, :, 1].floor().long()
-        seen = (depth[0] > 0) & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
-        hit = torch.zeros(len(centres), dtype=torch.bool)
-        hit[seen] = mask[v[seen], u[seen]]
-        inside &= hit
+    masks = {cam: torch.as_tensor(scene.load_mask(cam, frame) > 0.5) for cam in cameras}
+    inside, _ = inside_masks(scene.cameras, list(cameras), masks, centres)
     if not bool(inside.any()):
         return {"volume_L": 0.0}
     pts = centres[inside].numpy()
@@ -102,7 +97,8 @@ def main() -> None:
     if args.voxel <= 0:
         p.error(f"--voxel must be positive, got {args.voxel}")
     scene = load_scene(args.scene)
-    scene.check_frame(args.frame)
+    for f in [args.frame] + list(args.rank_cameras or []):
+        scene.check_frame(f)
     gt_file = args.scene / "ground_truth.json"
     gt = json.loads(gt_file.read_text()) if gt_file.is_file() else {}
     cameras = args.cameras if args.cameras is not None else (gt.get("cameras") or {}).get("sparse_view_indices")
@@ -127,8 +123,6 @@ def main() -> None:
         if spacing:
             out["truth_particles"]["volume_L"] = round(len(truth) * float(spacing) * 1e3, 4)
     if args.rank_cameras:
-        for f in args.rank_cameras:
-            scene.check_frame(f)
         def box(f):
             pts = args.scene / "gt_points" / f"frame_{f:03d}.ply"
             ref_f = read_ply_points(pts) if pts.is_file() else ref  # without the truth: the body of --frame

@@ -365,13 +365,14 @@ def test_discovery_benchmark_refuses_a_bad_device_before_any_work(tmp_path, caps
 
 
 def test_discovery_benchmark_refuses_bad_fitting_cameras_before_any_work(tmp_path, capsys):
-    """``--cameras`` picks stage 0's fitting cameras: with the true body (no stage 0), with one camera or
-    a repeated one, the benchmark stops with exit status 2 naming the option, and writes nothing."""
+    """``--cameras`` picks stage 0's fitting cameras: with the true body (no stage 0), with one camera, a
+    repeated one or one the scenes do not have, the benchmark stops with exit status 2 naming the option, and writes nothing."""
     bench = _bench_module("discovery")
     out = tmp_path / "D"
     cases = [(["--cameras", "1", "5", "9", "2"], "use it with --geometry stage0"),
              (["--geometry", "stage0", "--cameras", "1"], "two or more distinct 0-based camera indices, got [1]"),
-             (["--geometry", "stage0", "--cameras", "1", "5", "5"], "got [1, 5, 5]")]
+             (["--geometry", "stage0", "--cameras", "1", "5", "5"], "got [1, 5, 5]"),
+             (["--geometry", "stage0", "--cameras", "1", "5", "10"], "got [1, 5, 10]; the scenes have 10 cameras (0-9)")]
     for argv, message in cases:
         with pytest.raises(SystemExit) as exc:
             bench.main(argv + ["--report-only", "--out", str(out)])

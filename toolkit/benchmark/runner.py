@@ -286,12 +286,12 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
     from toolkit.benchmark.variant_jobs import base_scene, variant_scenes
 
     scene_by_name = {s.name: s for s in list(spec.scenes) + variant_scenes(spec.scenes, spec.variants, bench)}
-    # fits to run share a GPU with at most as many other fits as there are left for each GPU
-    fits_per_gpu = math.ceil(sum(1 for j in jobs if j["kind"] == "fit" and not job_is_done(j)) / max(1, len(gpus or [])))
+    # a fit shares its GPU with at most the fits left to run per GPU
+    fits_left = sum(1 for j in jobs if j["kind"] == "fit" and not job_is_done(j))
+    fits_a_gpu = min(jobs_per_gpu, max(1, math.ceil(fits_left / max(1, len(gpus or [])))))
 
     def slow_of(kind: str) -> float:
-        k = min(jobs_per_gpu, max(1, fits_per_gpu)) if kind == "fit" else jobs_per_gpu
-        return sharing_slowdown(k, kind) if gpus else 1.0
+        return sharing_slowdown(fits_a_gpu if kind == "fit" else jobs_per_gpu, kind) if gpus else 1.0
     calib = Calibration()
     particles: dict[str, int] = {}
     for j in jobs:
@@ -338,10 +338,9 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
          **({"estimated_wall_s_if_all_refined": round(refined_wall, 0), "refinable_fits": len(refinable)}
             if refined_wall is not None else {}),
          note="estimates are rough until jobs of each kind have finished (basis 'model' vs 'calibrated'); the wall "
-              "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs a GPU ({min(jobs_per_gpu, max(1, fits_per_gpu))} fits) a fit "
-                                                                          f"is assumed {slow_of('fit'):.2f}x slower and other "
-                                                                          f"jobs {slow_of('generate'):.2f}x"
-                                                                          if slow_of("fit") != 1 else "")
+              "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs a GPU ({fits_a_gpu} fits) a fit is "
+                                                                          f"assumed {slow_of('fit'):.2f}x slower and other "
+                                                                          f"jobs {slow_of('other'):.2f}x" if gpus and jobs_per_gpu > 1 else "")
               + (f"; a fit whose grid check fails is fitted again at half the grid spacing (refine_grid), about "
                  f"{profile.refine_factor:g}x its physics stage more: estimated_wall_s_if_all_refined is the wall time "
                  "if every one does" if refined_wall is not None else ""))

@@ -29,7 +29,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["DISAGREE", "DOMINANT", "SilhouetteAgreement", "check_scene", "silhouette_agreement", "pair_uncovered"]
+__all__ = ["DISAGREE", "DOMINANT", "SilhouetteAgreement", "check_scene", "silhouette_agreement", "pair_uncovered",
+           "inside_masks"]
 
 #: uncovered share of the masks (mean over a camera's pairs and the frames) above which a camera
 #: disagrees. Chosen, not calibrated: on generated 96 px scenes, correct cameras leave 0.0 %, a
@@ -102,8 +103,10 @@ def _pixels(cameras, cam: int, points: torch.Tensor, shape: tuple[int, int]):
     return u, v, ok
 
 
-def _inside(cameras, cams: Sequence[int], masks: dict[int, torch.Tensor], points: torch.Tensor):
-    """(N,) bool: points inside every camera's mask; and each camera's pixels of the points."""
+def inside_masks(cameras, cams: Sequence[int], masks: dict[int, torch.Tensor], points: torch.Tensor):
+    """The visual hull's membership test: ``(inside, pixels)``, where ``inside`` (N,) bool says which
+    of ``points`` (N, 3; m, world) project in front of every camera of ``cams``, onto its image and
+    into its (H, W) bool mask, and ``pixels[c] = (u, v, on_image)`` are camera ``c``'s integer pixels."""
     inside = torch.ones(points.shape[0], dtype=torch.bool)
     pix = {}
     for c in cams:
@@ -132,7 +135,7 @@ def pair_uncovered(cameras, masks: dict[int, torch.Tensor], pair: tuple[int, int
         ``(uncovered_a, uncovered_b)`` in [0, 1] (0 for an empty mask).
     """
     points = _grid(lo, hi, voxel)
-    inside, pix = _inside(cameras, pair, masks, points)
+    inside, pix = inside_masks(cameras, pair, masks, points)
     out = []
     for c in pair:
         u, v, ok = pix[c]
