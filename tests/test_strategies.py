@@ -27,6 +27,18 @@ def test_progressive_is_projo4d(material, stage2):
     assert steps[100:] == [("XASM", None, (3, 20), ("image", "geometry"))] * stage2
 
 
+def test_progressive_can_hold_v0_after_stage_1():
+    held = get_strategy("progressive", hold_velocity=True)
+    steps = _active(held, "newtonian")
+    assert steps[:100] == [("XAS", 3, (3, 3), ("image", "geometry"))] * 100  # v0 fitted before contact
+    assert steps[100:] == [("XAM", None, (3, 20), ("image", "geometry"))] * 250  # then held with the material free
+    assert [s.name for s in held.stages("newtonian")] == ["stage1:XAS", "stage2:XAM"]
+    # the same curriculum as the schedule string a benchmark could pass by hand
+    assert _active(get_strategy("XAS:100@3/3x3,XAM:250/3x20"), "newtonian") == steps
+    with pytest.raises(ValueError, match="hold_velocity must be true or false, got 'yes'"):
+        get_strategy("progressive", hold_velocity="yes")
+
+
 def test_sequential_is_gic():
     steps = _active(get_strategy("sequential", appearance_iterations=500), "plasticine")
     assert steps[:100] == [("S", 3, (3, 3), ("geometry",))] * 100  # velocity from the geometric loss, first frames
