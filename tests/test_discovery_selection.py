@@ -178,6 +178,36 @@ def test_separating_observation_follows_the_predictions(case):
         assert out["throw_px"]["2.0"] > 1.0 and out["clip_px"] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_a_recorded_camera_that_sees_the_difference_is_named():
+    """Camera 0 (fitted) looks along the difference; camera 1 (recorded, not fitted) looks across
+    it from the side; camera 2 faces away from the body. Camera 1 is named, camera 2 sees nothing."""
+    from toolkit.cameras import Cameras
+    from toolkit.discovery.separation import separating_observation
+
+    K = torch.tensor([[64.0, 0, 32], [0, 64.0, 32], [0, 0, 1]]).repeat(3, 1, 1)
+    w2c = torch.eye(4).repeat(3, 1, 1)
+    w2c[0, 2, 3] = 1.0  # at z = -1 looking along +z
+    w2c[1, :3, :3] = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # at x = -1 looking along +x
+    w2c[1, 2, 3] = 1.0
+    w2c[2, 2, 3] = -1.0  # at z = +1 looking along +z: the body is behind it
+    cams = Cameras(K, w2c, 64, 64)
+    T = 6
+    base = lambda t, v0: torch.tensor([0.01 * t * v0[0], 0.0, 0.0], dtype=torch.float64)
+    other = lambda t, v0: base(t, v0) + torch.tensor([0.0, 0.0, 0.006 * t], dtype=torch.float64)
+    a, b = (SimpleNamespace(name=n, lib=_Lib(f, cams, T), q=np.array([1.0, 0.0, 0.0])) for n, f in (("a", base), ("b", other)))
+    out = separating_observation(a, b)
+    assert out["observation"] == "another camera" and out["camera"] == 1, out
+    # 3 cm across at about 1 m depth with a 64 px focal length: about 1.9 px (depth 1 - 0.05 at the end)
+    assert out["recorded_px"][1] == pytest.approx(0.03 * 64 / 1.05, rel=0.1)
+    assert out["recorded_px"][2] == 0.0 and out["clip_px"] < 0.5
+    assert "camera 1, recorded but not fitted" in out["sentence"] and "cameras [0, 1]" in out["sentence"]
+    # without the side camera the answer is the hypothetical direction, as before
+    for r in (a, b):  # the scene is cameras 0 and 2 only
+        r.lib.input.cameras, r.lib.input.train_cameras = cams[[0, 2]], [0]
+    out = separating_observation(a, b)
+    assert out["observation"] == "another camera" and out["camera"] is None and out["recorded_px"] == {1: 0.0}
+
+
 def test_camera_pose_reported_when_its_improvement_sits_in_one_camera():
     """A pose error the physics never followed improves only its own camera's training fit: the
     held-out data need not improve, the concentration in one camera is the evidence."""

@@ -7,6 +7,11 @@ derived from the two refits' predictions, not from a fixed text per pair:
 A new observation must show the two apart by ``need = max(VISIBLE_PX, 2 x`` what the fitted
 cameras already show over the clip) pixels: a difference the clip shows did not separate them.
 
+* **a recorded camera**: first, the scene's cameras that were not fitted (the held-out ones) are
+  asked: if one of them, with the body in view, sees the two predictions part by ``need`` pixels
+  over the clip, the data to separate them already exist, and the report names that camera
+  (``camera``; observation "another camera"). The benchmark's four-camera slides (2026-11-28)
+  showed one well-placed added camera naming an effect three could not.
 * **another camera**: over the observed frames the two predictions part in 3D, but the fitted
   cameras see the difference mostly along their viewing rays, while a camera looking across the
   difference would see ``need`` pixels (the difference's full size in pixels at the fitted cameras' depth and
@@ -31,7 +36,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-__all__ = ["separating_observation", "VISIBLE_PX", "THROW_SCALES", "EXTRA_FRAMES"]
+__all__ = ["separating_observation", "recorded_camera_pixels", "VISIBLE_PX", "THROW_SCALES", "EXTRA_FRAMES"]
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +87,33 @@ def _pixels(cams, c: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return np.array(out), np.array(full)
 
 
+def _in_view(cams, c: np.ndarray) -> np.ndarray:
+    """(C, T) whether each centroid ``c`` (T, 3) projects inside each camera's image, in front of it."""
+    K = cams.K.double().cpu().numpy()
+    w2c = cams.w2c.double().cpu().numpy()
+    out = []
+    for k in range(len(K)):
+        y = c @ w2c[k, :3, :3].T + w2c[k, :3, 3]
+        z = y[:, 2]
+        u = K[k, 0, 0] * y[:, 0] / np.maximum(z, 1e-6) + K[k, 0, 2]
+        v = K[k, 1, 1] * y[:, 1] / np.maximum(z, 1e-6) + K[k, 1, 2]
+        out.append((z > 1e-6) & (u >= 0) & (u < cams.width) & (v >= 0) & (v < cams.height))
+    return np.array(out)
+
+
+def recorded_camera_pixels(inp, ca: np.ndarray, cb: np.ndarray) -> dict[int, float]:
+    """For every camera of ``inp`` that was not fitted: the largest image distance (px) between the
+    centroids ``ca`` and ``cb`` (T, 3, m) over the frames where the body is in its view (0 when it
+    never is). ``{}`` when every camera was fitted."""
+    others = [c for c in range(len(inp.cameras)) if c not in set(inp.train_cameras)]
+    if not others:
+        return {}
+    cams = inp.cameras[others]
+    seen, _ = _pixels(cams, ca, cb - ca)
+    view = _in_view(cams, ca) & _in_view(cams, cb)
+    return {int(c): float(np.where(view[i], seen[i], 0.0).max()) for i, c in enumerate(others)}
+
+
 def separating_observation(a, b, visible_px: float = VISIBLE_PX) -> dict:
     """Which observation separates the refits ``a`` and ``b`` (:class:`~toolkit.discovery.confirm.Refit`).
 
@@ -90,13 +122,15 @@ def separating_observation(a, b, visible_px: float = VISIBLE_PX) -> dict:
         | "none found", "sentence": ..., "clip_px": largest separation a fitted camera sees over the
         observed frames (px), "across_px": the same difference seen across (px), "direction": unit
         world direction to look across (another camera), "longer_clip_frame": first frame past the
-        clip where a fitted camera sees >= visible_px (or None), "throw_px": {v0 scale: px}}``.
+        clip where a fitted camera sees >= visible_px (or None), "throw_px": {v0 scale: px},
+        "recorded_px": {camera index: px} for the scene's cameras that were not fitted, "camera":
+        the recorded camera that separates them (or None)}``.
     """
     inp = a.lib.input
     T = inp.n_train  # the clip the candidates were judged on (the training frames)
     cams = inp.cameras[list(inp.train_cameras)]
     out: dict = {"candidates": [a.name, b.name], "clip_px": None, "across_px": None, "direction": None,
-                 "longer_clip_frame": None, "throw_px": {}}
+                 "longer_clip_frame": None, "throw_px": {}, "recorded_px": {}, "camera": None}
     ca, cb = _centroids(a, T), _centroids(b, T)
     if ca is None or cb is None:
         out.update(observation="none found", sentence=f"{a.name} and {b.name} could not both be simulated over the clip.")
@@ -107,6 +141,16 @@ def separating_observation(a, b, visible_px: float = VISIBLE_PX) -> dict:
     # already shows (a difference the clip shows did not separate them: it is within noise)
     need = max(visible_px, 2.0 * out["clip_px"])
     out["needed_px"] = need
+    out["recorded_px"] = recorded_camera_pixels(inp, ca, cb)
+    if out["recorded_px"]:
+        cam, px = max(out["recorded_px"].items(), key=lambda kv: kv[1])
+        if px >= need:
+            fitted = sorted(int(c) for c in inp.train_cameras)
+            out.update(observation="another camera", camera=cam, sentence=(
+                f"another camera: camera {cam}, recorded but not fitted, sees {a.name} and {b.name} part by {px:.1f} px "
+                f"over the clip against {out['clip_px']:.1f} px in the fitted cameras {fitted}; fitting with cameras "
+                f"{sorted(fitted + [cam])} would separate them."))
+            return out
     if out["across_px"] >= need:
         t = int(across.max(0).argmax())
         d = (cb - ca)[t]
