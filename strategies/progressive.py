@@ -26,7 +26,8 @@ class Progressive(Strategy):
             instead of ``XASM``), default False (the paper's). Stage 1 fits v0 on the frames before
             contact; in the paper-size fits of 2026-11-28 (round 18) Stage 2 moved it away from
             there in 6 of 7 fits (mean error 0.004 -> 0.025 m/s) while the material was still
-            far off. Not the default until measured at that size.
+            far off. On four 64 px CPU scenes it was not better (stage 1's v0 from three small
+            frames was up to 0.02 m/s off). Not the default until measured at the paper's size.
     """
 
     option_defaults = {
