@@ -143,7 +143,7 @@ def run_scene(hs, args, thresholds) -> dict:
         "scene": hs.name, "geometry": args.geometry, "stage0_seed": args.stage0_seed if args.geometry == "stage0" else None,
         "effect": hs.effect, "level": hs.level, "material": hs.material, "throw": hs.throw, "size": hs.size,
         "expected": hs.expected, "decision": res.decision, "kind": res.decision_kind, "indistinguishable": res.indistinguishable,
-        "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence")} for d in res.separation],
+        "separation": [{k: v for k, v in d.items() if k in ("candidates", "observation", "sentence", "camera")} for d in res.separation],
         "joint": res.joint, "floors": res.floors, "noise": res.noise, "motion": res.motion,
         "single_camera": res.localization.single_camera if res.localization.single_camera in inp.train_cameras else None,
         "silhouettes": res.silhouettes, "fitting_cameras": [int(c) for c in inp.train_cameras],
