@@ -111,12 +111,20 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = p.parse_args(argv)
     if not args.tables.is_file():
         raise SystemExit(f"{args.tables}: no such file (expected a tables.json of projo4d benchmark)")
-    tables = json.loads(args.tables.read_text())
+    try:
+        tables = json.loads(args.tables.read_text())
+    except json.JSONDecodeError as err:
+        raise SystemExit(f"{args.tables}: not JSON ({err}); expected a tables.json of projo4d benchmark") from None
+    if not isinstance(tables, dict) or not isinstance(tables.get("tables"), list):
+        raise SystemExit(f"{args.tables}: no 'tables' list; expected a tables.json of projo4d benchmark "
+                         "or benchmarks/combine_rounds.py")
     results = [count(tables, s) for s in args.strategies]
     for r in results:
         print(json.dumps(r), flush=True)
     if args.md:
-        args.md.write_text(markdown(results))
+        from toolkit.atomic import write_text
+
+        write_text(args.md, markdown(results))
     return 0
 
 

@@ -110,6 +110,10 @@ def test_camera_subsets_and_strategy_parsing():
         BenchmarkSpec([SceneEntry("a", "/x", "sand")], ["progressive", "progressive"])
     with pytest.raises(BenchmarkError, match="no option"):
         strategy_options(parse_strategy("joint", {"cycles": 2}), {}, "sand")
+    # a bad option value is refused when the plan is made, before any scene or stage 0 runs
+    with pytest.raises(BenchmarkError, match="strategy held .progressive.*hold_velocity must be true or false, got 'yes'"):
+        strategy_options(parse_strategy("held=progressive", {"hold_velocity": "yes"}), {}, "sand")
+    assert strategy_options(parse_strategy("held=progressive", {"hold_velocity": True}), {}, "sand") == {"hold_velocity": True}
 
 
 def test_gpus_option_reads_ids_a_single_id_and_a_count():

@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.bench_helpers import load_benchmark_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("paper_count", ROOT / "benchmarks" / "paper_count.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark_script("paper_count")
 
 
 def _table(material, strategy, values, cameras=3):
@@ -54,6 +49,13 @@ def test_counts_entries_at_or_below_the_paper_and_missing_ones_as_not_reached(tm
     assert "**3 of 27**" in (tmp_path / "c.md").read_text()
 
 
-def test_a_missing_file_is_named(tmp_path):
+def test_a_missing_or_wrong_file_is_named(tmp_path):
     with pytest.raises(SystemExit, match="nope.json"):
         _script().main([str(tmp_path / "nope.json")])
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(SystemExit, match="bad.json: not JSON"):
+        _script().main([str(bad)])
+    bad.write_text(json.dumps({"records": []}))  # a summary, not a tables.json
+    with pytest.raises(SystemExit, match="bad.json: no 'tables' list"):
+        _script().main([str(bad)])

@@ -267,7 +267,7 @@ def _strategy_class(spec: str):
 
 def strategy_options(entry: StrategyEntry, iterations: dict, material: str) -> dict:
     """The options of one strategy for one material: the iteration overrides it accepts, then its
-    own options."""
+    own options, checked by building the strategy's stages for ``material``."""
     cls = _strategy_class(entry.spec)
     if cls is None:
         if entry.options:
@@ -284,6 +284,10 @@ def strategy_options(entry: StrategyEntry, iterations: dict, material: str) -> d
     if unknown:
         raise BenchmarkError(f"strategy {entry.label} ({entry.spec}) has no option(s) {sorted(unknown)}; known: {sorted(known)}")
     opts.update(entry.options)
+    try:  # a bad option value stops the plan, not the fit after its scene and stage 0
+        cls(**opts).stages(material)
+    except (ValueError, TypeError) as err:
+        raise BenchmarkError(f"strategy {entry.label} ({entry.spec}) with options {entry.options}: {err}") from None
     return opts
 
 
