@@ -1,9 +1,23 @@
-"""Job functions for the executor tests (importable by spawned worker processes)."""
+"""Helpers for the benchmark tests: job functions for the executor tests (importable by spawned
+worker processes) and a loader for the scripts in ``benchmarks/`` (not a package)."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import time
+from pathlib import Path
+from types import ModuleType
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark_script(stem: str) -> ModuleType:
+    """``benchmarks/<stem>.py`` as a module (executed fresh on every call)."""
+    spec = importlib.util.spec_from_file_location(stem, BENCHMARKS / f"{stem}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def sleepy_job(job: dict) -> dict:

@@ -89,14 +89,10 @@ def _log_line(**e) -> str:
 def test_estimate_check_recovers_the_sharing_from_an_event_log(tmp_path, capsys):
     """A log where two fits share GPU 0 for all their run and a third is alone on GPU 1: the check
     counts k = 2 and 1, takes a refit's seconds out, and inverts k / (1 + overlap (k - 1))."""
-    import importlib.util
-
+    from tests.bench_helpers import load_benchmark_script
     from toolkit.benchmark.estimate import sharing_slowdown
 
-    spec = importlib.util.spec_from_file_location("estimate_check", __import__("pathlib").Path(__file__).resolve()
-                                                  .parents[1] / "benchmarks" / "estimate_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_benchmark_script("estimate_check")
     assumed = sharing_slowdown(2, "other")  # what an old plan's note named
     alone = 100.0
     slow_true = sharing_slowdown(2, "fit")  # the truth of this made-up machine: overlap 0.07
@@ -144,10 +140,7 @@ def test_the_plan_prices_fits_at_the_sharing_they_will_have(tmp_path, capsys):
     events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
     alone = next(e["est_s"] for e in events if e.get("event") == "estimate" and e["job"].startswith("fit:"))
     assert fit == pytest.approx(alone * sharing_slowdown(2, "fit"), rel=0.01)
-    import importlib.util
-    from pathlib import Path
+    from tests.bench_helpers import load_benchmark_script
 
-    spec = importlib.util.spec_from_file_location("estimate_check", Path(__file__).resolve().parents[1] / "benchmarks" / "estimate_check.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_benchmark_script("estimate_check")
     assert mod.assumed_slowdown(plan) == pytest.approx(sharing_slowdown(2, "fit"), abs=0.01)

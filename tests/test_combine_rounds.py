@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.bench_helpers import load_benchmark_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("combine_rounds", ROOT / "benchmarks" / "combine_rounds.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark_script("combine_rounds")
 
 
 def _rec(scene, e_err, cd):

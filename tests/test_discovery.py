@@ -348,13 +348,7 @@ def test_discover_command_names_bad_input(tmp_path):
 def test_discovery_benchmark_refuses_a_bad_device_before_any_work(tmp_path, capsys):
     """``benchmarks/discovery.py --stage0-device gpu`` stops with exit status 2 naming the option and
     the value, and writes nothing."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "discovery.py"
-    spec = importlib.util.spec_from_file_location("discovery_benchmark", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _bench_module("discovery")
     out = tmp_path / "D"
     for option in ("--device", "--stage0-device"):
         with pytest.raises(SystemExit) as exc:
@@ -381,14 +375,9 @@ def test_discovery_benchmark_refuses_bad_fitting_cameras_before_any_work(tmp_pat
 
 
 def _bench_module(name: str):
-    import importlib.util
-    from pathlib import Path
+    from tests.bench_helpers import load_benchmark_script
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark_script(name)
 
 
 def test_discovery_record_keeps_the_start_each_refit_kept():

@@ -169,13 +169,9 @@ def test_the_camera_that_carves_most_is_ranked_first():
     sphere, the third ring camera (another 120 degrees round) carves more of their hull than a camera
     10 degrees from one of them, and every added camera carves something; the hulls stay above the
     sphere's own volume."""
-    import importlib.util
-    from pathlib import Path
+    from tests.bench_helpers import load_benchmark_script
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "visual_hull.py"
-    spec = importlib.util.spec_from_file_location("visual_hull", path)
-    hull = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(hull)
+    hull = load_benchmark_script("visual_hull")
     e = math.radians(25)
     near = [math.cos(e) * math.cos(math.radians(10)), math.sin(e), math.cos(e) * math.sin(math.radians(10))]
     cams = Cameras.cat([ring_cameras(), Cameras.look_at(near, (0, 0, 0), fov_y_deg=12.0, width=SIZE, height=SIZE)])

@@ -89,16 +89,9 @@ def _pixels(cams, c: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def _in_view(cams, c: np.ndarray) -> np.ndarray:
     """(C, T) whether each centroid ``c`` (T, 3) projects inside each camera's image, in front of it."""
-    K = cams.K.double().cpu().numpy()
-    w2c = cams.w2c.double().cpu().numpy()
-    out = []
-    for k in range(len(K)):
-        y = c @ w2c[k, :3, :3].T + w2c[k, :3, 3]
-        z = y[:, 2]
-        u = K[k, 0, 0] * y[:, 0] / np.maximum(z, 1e-6) + K[k, 0, 2]
-        v = K[k, 1, 1] * y[:, 1] / np.maximum(z, 1e-6) + K[k, 1, 2]
-        out.append((z > 1e-6) & (u >= 0) & (u < cams.width) & (v >= 0) & (v < cams.height))
-    return np.array(out)
+    uv, z = cams.project(torch.as_tensor(c, dtype=torch.float64, device=cams.K.device))
+    u, v = uv[..., 0], uv[..., 1]
+    return ((z > 0) & (u >= 0) & (u < cams.width) & (v >= 0) & (v < cams.height)).cpu().numpy()
 
 
 def recorded_camera_pixels(inp, ca: np.ndarray, cb: np.ndarray) -> dict[int, float]:
