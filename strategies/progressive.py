@@ -24,10 +24,11 @@ class Progressive(Strategy):
         stage1_batch, stage2_batch: (cameras, frames) per iteration, default (3, 3) and (3, 20).
         hold_velocity: keep v0 (and a learnt gravity) at Stage 1's value in Stage 2 (``XAM``
             instead of ``XASM``), default False (the paper's). Stage 1 fits v0 on the frames before
-            contact; in the paper-size fits of 2026-11-28 (round 18) Stage 2 moved it away from
-            there in 6 of 7 fits (mean error 0.004 -> 0.025 m/s) while the material was still
-            far off. On four 64 px CPU scenes it was not better (stage 1's v0 from three small
-            frames was up to 0.02 m/s off). Not the default until measured at the paper's size.
+            contact. On nine 400 px scenes (round 19 of the paper-size benchmark, same stage 0 for
+            both arms) holding it made v0 7x closer (mean error 0.0158 -> 0.0023 m/s) and left the
+            material errors and the future CD where they were. On four 64 px CPU scenes it was not
+            better: stage 1's v0 from three small frames was up to 0.02 m/s off. Elastic and
+            plasticine are not yet measured at 400 px.
     """
 
     option_defaults = {
