@@ -27,7 +27,8 @@ class Progressive(Strategy):
             contact. On nine 400 px scenes (round 19 of the paper-size benchmark, same stage 0 for
             both arms) holding it made v0 7x closer (mean error 0.0158 -> 0.0023 m/s) and left the
             material errors and the future CD where they were. On four 64 px CPU scenes it was not
-            better: stage 1's v0 from three small frames was up to 0.02 m/s off. Elastic and
+            better: stage 1's v0 from three small frames was up to 0.01-0.02 m/s off (100 or 30
+            stage-1 iterations), which stage 2 corrects. Elastic and
             plasticine are not yet measured at 400 px.
     """
 
