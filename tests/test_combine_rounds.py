@@ -70,3 +70,32 @@ def test_a_combined_table_lists_its_rounds_flat(tmp_path):
     md = (tmp_path / "abc" / "tables.md").read_text()
     assert f"- **rounds**: {a}, {b}, {c}\n" in md
     assert {r["scene"]: r["errors"]["E"] for r in tables["records"]} == {"neo_hookean/000": 0.1, "neo_hookean/001": 0.2}
+
+
+def test_an_arm_stands_in_for_a_strategy(tmp_path, capsys):
+    """``--stand-in held=progressive``: the round's held fits are counted as progressive's, its own progressive
+    fits of those scenes are dropped, and a scene without a held fit keeps its progressive one."""
+    mod = _script()
+    old, new = tmp_path / "old.json", tmp_path / "new.json"
+    old.write_text(json.dumps({"settings": {}, "records": [_rec("neo_hookean/000", 0.6, 1.0), _rec("neo_hookean/001", 0.5, 1.5)]}))
+    new.write_text(json.dumps({"settings": {}, "records": [
+        _rec("neo_hookean/000", 0.4, 2.0),
+        {**_rec("neo_hookean/000", 0.1, 4.0), "strategy": "held"},
+        _rec("neo_hookean/001", 0.3, 3.0)]}))
+    assert mod.main([str(old), str(new), "--out", str(tmp_path / "plain")]) == 0
+    assert mod.main([str(old), str(new), "--stand-in", "held=progressive", "--out", str(tmp_path / "whatif")]) == 0
+    plain = json.loads((tmp_path / "plain" / "tables.json").read_text())
+    whatif = json.loads((tmp_path / "whatif" / "tables.json").read_text())
+    assert sorted((r["scene"], r["strategy"]) for r in plain["records"]) == [
+        ("neo_hookean/000", "held"), ("neo_hookean/000", "progressive"), ("neo_hookean/001", "progressive")]
+    by_scene = {r["scene"]: r for r in whatif["records"]}
+    assert [r["strategy"] for r in whatif["records"]] == ["progressive", "progressive"]
+    assert by_scene["neo_hookean/000"]["errors"]["E"] == 0.1 and by_scene["neo_hookean/000"]["stands_in_for"] == "held"
+    assert by_scene["neo_hookean/001"]["errors"]["E"] == 0.3 and "stands_in_for" not in by_scene["neo_hookean/001"]
+    (row,) = whatif["tables"][0]["rows"]
+    assert row["values"]["mae:E"]["mean"] == pytest.approx((0.1 + 0.3) / 2)
+    assert whatif["settings"]["stand-ins"] == {"held": "progressive"}
+    for bad in ("held", "held=held", "=progressive"):
+        with pytest.raises(SystemExit) as stop:
+            mod.main([str(new), "--stand-in", bad, "--out", str(tmp_path / "bad")])
+        assert stop.value.code == 2 and "ARM=STRATEGY" in capsys.readouterr().err
