@@ -49,3 +49,18 @@ def test_a_camera_the_masks_contradict_is_repeated_at_the_end():
     table = format_summary({**summary, "silhouettes": {"disagree": True, "suspect": 5, "message": msg}})
     assert f"WARNING {msg}" in table
     assert "silhouettes" not in format_summary({**summary, "silhouettes": {"disagree": False, "message": "agree"}})
+
+
+def test_the_starting_v0_and_its_free_flight_frames_are_kept():
+    """The stage-0 ballistic estimate v0 started from is in ``summary.json`` with its free-flight frames,
+    and the table says over which frames and why it stopped; a run without one says nothing."""
+    module = _module({}, {})
+    module.v0_estimate = {"v0": [-0.743, -0.219, -0.935], "x0": [0.0, 0.3, 0.0], "frames": [0, 1, 2, 3, 4, 5],
+                          "method": "ballistic", "rms_residual": 0.002, "stop_reason": "ground contact at frame 6"}
+    summary = run_summary(module, {}, {}, [])
+    assert summary["v0_start"]["frames"] == [0, 1, 2, 3, 4, 5]
+    table = format_summary(summary)
+    assert ("v0 started at the stage-0 ballistic estimate (-0.743, -0.219, -0.935) m/s, fitted over frames 0-5 "
+            "(6 frames; ground contact at frame 6)") in table
+    plain = run_summary(_module({}, {}), {}, {}, [])
+    assert plain["v0_start"] is None and "v0 started" not in format_summary(plain)

@@ -50,6 +50,8 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
         "timings_s": {k: round(v, 1) for k, v in timings.items()},
         "report": [str(f) for f in files],
         "stage0_coverage": module.input.meta.get("stage0_coverage"),  # frames where stage 0 lost the object
+        # the stage-0 ballistic estimate v0 started from: its free-flight frames and why it stopped there
+        "v0_start": getattr(module, "v0_estimate", None),
     }
 
 
@@ -65,6 +67,11 @@ def format_summary(summary: dict) -> str:
         label = r.get("label") or "-"
         label += f" ({r['note']})" if r.get("note") else ""
         lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
+    start = summary.get("v0_start")
+    if start and start.get("frames"):
+        f = start["frames"]
+        lines.append(f"v0 started at the stage-0 {start['method']} estimate ({', '.join(f'{c:.3g}' for c in start['v0'])}) m/s, "
+                     f"fitted over frames {f[0]}-{f[-1]} ({len(f)} frames; {start['stop_reason']})")
     fut = summary["future"]
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "
