@@ -58,9 +58,9 @@ def test_the_starting_v0_and_its_free_flight_frames_are_kept():
     module.v0_estimate = {"v0": [-0.743, -0.219, -0.935], "x0": [0.0, 0.3, 0.0], "frames": [0, 1, 2, 3, 4, 5],
                           "method": "ballistic", "rms_residual": 0.002, "stop_reason": "ground contact at frame 6"}
     summary = run_summary(module, {}, {}, [])
-    assert summary["v0_start"]["frames"] == [0, 1, 2, 3, 4, 5]
+    assert summary["v0_estimate"]["frames"] == [0, 1, 2, 3, 4, 5]
     table = format_summary(summary)
     assert ("v0 started at the stage-0 ballistic estimate (-0.743, -0.219, -0.935) m/s, fitted over frames 0-5 "
             "(6 frames; ground contact at frame 6)") in table
     plain = run_summary(_module({}, {}), {}, {}, [])
-    assert plain["v0_start"] is None and "v0 started" not in format_summary(plain)
+    assert plain["v0_estimate"] is None and "v0 started" not in format_summary(plain)

@@ -51,7 +51,7 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
         "report": [str(f) for f in files],
         "stage0_coverage": module.input.meta.get("stage0_coverage"),  # frames where stage 0 lost the object
         # the stage-0 ballistic estimate v0 started from: its free-flight frames and why it stopped there
-        "v0_start": getattr(module, "v0_estimate", None),
+        "v0_estimate": getattr(module, "v0_estimate", None),
     }
 
 
@@ -67,7 +67,7 @@ def format_summary(summary: dict) -> str:
         label = r.get("label") or "-"
         label += f" ({r['note']})" if r.get("note") else ""
         lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
-    start = summary.get("v0_start")
+    start = summary.get("v0_estimate")
     if start and start.get("frames"):
         f = start["frames"]
         lines.append(f"v0 started at the stage-0 {start['method']} estimate ({', '.join(f'{c:.3g}' for c in start['v0'])}) m/s, "
