@@ -69,9 +69,9 @@ def format_summary(summary: dict) -> str:
         lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
     start = summary.get("v0_estimate")
     if start and start.get("frames"):
-        f = start["frames"]
-        lines.append(f"v0 started at the stage-0 {start['method']} estimate ({', '.join(f'{c:.3g}' for c in start['v0'])}) m/s, "
-                     f"fitted over frames {f[0]}-{f[-1]} ({len(f)} frames; {start['stop_reason']})")
+        from toolkit.physics.initial_velocity import describe_estimate
+
+        lines.append("v0 started at the " + describe_estimate(start))
     fut = summary["future"]
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "

@@ -45,7 +45,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input", "CONTACT_BAND_CELLS",
+__all__ = ["describe_estimate", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input", "CONTACT_BAND_CELLS",
            "CONTACT_FIT_FRAMES", "TOUCH_TOLERANCE_CELLS"]
 
 #: a frame whose lowest surface point is within this many grid cells of the ground is in contact
@@ -81,6 +81,15 @@ class V0Estimate:
     def to_dict(self) -> dict:
         return {"v0": list(self.v0), "x0": list(self.x0), "frames": list(self.frames), "method": self.method,
                 "rms_residual": self.rms_residual, "stop_reason": self.stop_reason}
+
+
+def describe_estimate(est: dict) -> str:
+    """One line on a :meth:`V0Estimate.to_dict` record: the v0 it gives and the frames it was fitted
+    over, e.g. ``stage-0 ballistic estimate (0.5, -1, 0.2) m/s, fitted over frames 0-5 (6 frames;
+    ground contact at frame 6)``."""
+    f = est["frames"]
+    return (f"stage-0 {est['method']} estimate ({', '.join(f'{c:.3g}' for c in est['v0'])}) m/s, fitted over frames "
+            f"{f[0]}-{f[-1]} ({len(f)} frames; {est['stop_reason']})")
 
 
 def _fit(t: np.ndarray, x: np.ndarray, gravity: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -53,9 +53,11 @@ def initial_v0(v0_init: Union[None, str, list[float]], inp: PhysicsInput, cfg: S
         if est is None:
             log.info("v0 starts at zero: fewer than 3 stage-0 frames before ground contact to estimate it from")
             return StartingVelocity([0.0, 0.0, 0.0], hparam=(None,))
-        log.info("v0 starts at the stage-0 estimate (%.3f, %.3f, %.3f) m/s (%s fit over frames %s, rms %.2g m; %s)",
-                 *est.v0, est.method, est.frames, est.rms_residual, est.stop_reason)
-        return StartingVelocity(list(est.v0), hparam=(None,), estimate=est.to_dict())
+        from toolkit.physics.initial_velocity import describe_estimate
+
+        record = est.to_dict()
+        log.info("v0 starts at the %s, rms %.2g m", describe_estimate(record), est.rms_residual)
+        return StartingVelocity(list(est.v0), hparam=(None,), estimate=record)
     if isinstance(v0_init, str):
         if v0_init == "zero":
             return StartingVelocity([0.0, 0.0, 0.0], hparam=([0.0, 0.0, 0.0],))
