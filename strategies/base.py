@@ -18,13 +18,19 @@ strategies are curricula, configured under the model's ``curriculum`` argument.
 from __future__ import annotations
 
 import bisect
-from dataclasses import asdict, dataclass, field
+import copy
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, ClassVar, Mapping, Optional, Sequence
 
-__all__ = ["GROUPS", "LOSSES", "Stage", "Strategy", "StrategyError", "expand_groups"]
+__all__ = ["FREE_FLIGHT", "FREE_FLIGHT_MIN_FRAMES", "GROUPS", "LOSSES", "Stage", "Strategy", "StrategyError", "expand_groups"]
 
 GROUPS = ("X", "A", "S", "M")
 LOSSES = ("image", "geometry")
+#: a stage's frame window that the fit sets per clip: the training frames before ground contact
+#: (the stage-0 ballistic estimate's free-flight frames, :mod:`toolkit.physics.initial_velocity`)
+FREE_FLIGHT = "free_flight"
+#: the fewest frames a ``free_flight`` window holds (the paper's first-frames window, 3)
+FREE_FLIGHT_MIN_FRAMES = 3
 
 
 class StrategyError(ValueError):
@@ -54,7 +60,10 @@ class Stage:
     Attributes:
         groups: active parameter groups, a subset of ``{"X", "A", "S", "M"}``.
         iterations: optimizer iterations of this stage (>= 1).
-        frames: frame window: the first ``frames`` training frames, or ``None`` for all of them.
+        frames: frame window: the first ``frames`` training frames, ``None`` for all of them, or
+            ``"free_flight"`` (:data:`FREE_FLIGHT`): the frames before ground contact, set per clip
+            when the fit starts (:meth:`Strategy.with_free_flight`; at least
+            :data:`FREE_FLIGHT_MIN_FRAMES`).
         cameras_per_step: training cameras sampled per iteration (``None``: all).
         frames_per_step: frames sampled per iteration from the window (``None``: all of it).
         losses: loss terms that are on: ``"image"`` and/or ``"geometry"``.
@@ -64,7 +73,7 @@ class Stage:
 
     groups: frozenset[str]
     iterations: int
-    frames: Optional[int] = None
+    frames: Optional[int | str] = None
     cameras_per_step: Optional[int] = None
     frames_per_step: Optional[int] = None
     losses: tuple[str, ...] = LOSSES
@@ -78,7 +87,9 @@ class Stage:
             raise StrategyError(f"unknown parameter group(s) {sorted(bad)}; groups are X, A, S, M")
         if not isinstance(self.iterations, int) or self.iterations < 1:
             raise StrategyError(f"a stage needs iterations >= 1, got {self.iterations!r}")
-        for label, v in (("frames", self.frames), ("cameras_per_step", self.cameras_per_step), ("frames_per_step", self.frames_per_step)):
+        if self.frames != FREE_FLIGHT and self.frames is not None and (not isinstance(self.frames, int) or self.frames < 1):
+            raise StrategyError(f"stage frames must be a positive integer, None (all) or {FREE_FLIGHT!r}, got {self.frames!r}")
+        for label, v in (("cameras_per_step", self.cameras_per_step), ("frames_per_step", self.frames_per_step)):
             if v is not None and (not isinstance(v, int) or v < 1):
                 raise StrategyError(f"stage {label} must be a positive integer or None, got {v!r}")
         losses = tuple(self.losses)
@@ -93,9 +104,21 @@ class Stage:
             object.__setattr__(self, "name", self.label())
 
     def label(self) -> str:
-        """Compact label, e.g. ``XAS@3`` (the schedule-string form without iterations)."""
+        """Compact label, e.g. ``XAS@3`` or ``XAS@ff`` (the schedule-string form without iterations)."""
         g = "".join(x for x in GROUPS if x in self.groups)
-        return g + (f"@{self.frames}" if self.frames else "")
+        return g + (f"@{self.window_label()}" if self.frames else "")
+
+    def window_label(self) -> str:
+        """The window as the schedule string writes it: ``"3"``, ``"ff"`` (free flight) or ``""`` (all)."""
+        return "ff" if self.frames == FREE_FLIGHT else str(self.frames or "")
+
+    def with_free_flight(self, free_flight_frames: Optional[int]) -> "Stage":
+        """This stage with a ``free_flight`` window set to ``max(free_flight_frames,
+        FREE_FLIGHT_MIN_FRAMES)`` frames (``FREE_FLIGHT_MIN_FRAMES`` when ``None``: no estimate, or
+        the body touches the ground at frame 0); any other stage unchanged."""
+        if self.frames != FREE_FLIGHT:
+            return self
+        return replace(self, frames=max(int(free_flight_frames or 0), FREE_FLIGHT_MIN_FRAMES))
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -145,6 +168,8 @@ class Strategy:
             )
         self.options: dict[str, Any] = {**self.option_defaults, **options}
         self._cache: dict = {}
+        #: ``(frames,)`` once :meth:`with_free_flight` set the clip's free-flight window, else None
+        self._free_flight: Optional[tuple[Optional[int]]] = None
 
     @property
     def name(self) -> str:
@@ -163,8 +188,25 @@ class Strategy:
             for s in stages:
                 if not isinstance(s, Stage):
                     raise StrategyError(f"strategy {self.name!r} produced {s!r}, expected a Stage")
+            if self._free_flight is not None:
+                stages = [s.with_free_flight(self._free_flight[0]) for s in stages]
             self._cache[material] = stages
         return self._cache[material]
+
+    def has_free_flight_window(self, material: str | None = None) -> bool:
+        """Whether a stage's window is ``free_flight`` and not yet set (:meth:`with_free_flight`)."""
+        return any(s.frames == FREE_FLIGHT for s in self.stages(material))
+
+    def with_free_flight(self, free_flight_frames: Optional[int]) -> "Strategy":
+        """A copy of this strategy whose ``free_flight`` windows hold ``free_flight_frames`` training
+        frames (at least :data:`FREE_FLIGHT_MIN_FRAMES`; that many when ``None``). The fit calls it
+        with the stage-0 ballistic estimate's free-flight frames
+        (:func:`toolkit.physics.initial_velocity.free_flight_frames`); this strategy is unchanged."""
+        out = copy.copy(self)
+        out.options = dict(self.options)
+        out._cache = {}
+        out._free_flight = (free_flight_frames,)
+        return out
 
     def total_iterations(self, material: str | None = None) -> int:
         return sum(s.iterations for s in self.stages(material))

@@ -20,7 +20,7 @@ class Cyclic(Strategy):
         cycles: N, default 4.
         iterations: total budget (default ProJo4D's: 100 + the material's Stage-2 count),
             split evenly over the stages.
-        early_frames: frame window of the S stages (default 3).
+        early_frames: frame window of the S stages (default 3; "free_flight": the frames before ground contact).
         batch: (cameras, frames) per iteration, default (3, 20).
     """
 
@@ -28,7 +28,7 @@ class Cyclic(Strategy):
                        "batch": STAGE2_BATCH}
 
     def __init__(self, pattern: str = PATTERNS[0], cycles: int = 4, iterations: Optional[int] = None,
-                 early_frames: int = EARLY_FRAMES, batch: tuple[int, int] = STAGE2_BATCH):
+                 early_frames: int | str = EARLY_FRAMES, batch: tuple[int, int] = STAGE2_BATCH):
         super().__init__(pattern=pattern, cycles=cycles, iterations=iterations, early_frames=early_frames, batch=tuple(batch))
         if self.options["pattern"] not in PATTERNS:
             raise StrategyError(f"cyclic pattern must be one of {PATTERNS}, got {self.options['pattern']!r}")

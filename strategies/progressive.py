@@ -20,7 +20,10 @@ class Progressive(Strategy):
         stage1_iterations: default 100.
         stage2_iterations: default per material (elastic/sand 150, Newtonian 250,
             non-Newtonian 350, plasticine 300; paper appendix); an int overrides it.
-        early_frames: Stage-1 frame window, default 3.
+        early_frames: Stage-1 frame window, default 3; ``"free_flight"``: the clip's frames before
+            ground contact, found by the stage-0 ballistic estimate when the fit starts (at least 3;
+            schedule string ``@ff``). With ``hold_velocity`` it makes stage 1 fit v0 on every frame
+            that determines it without the material, and stage 2 keep it.
         stage1_batch, stage2_batch: (cameras, frames) per iteration, default (3, 3) and (3, 20).
         hold_velocity: keep v0 (and a learnt gravity) at Stage 1's value in Stage 2 (``XAM``
             instead of ``XASM``), default False (the paper's). Stage 1 fits v0 on the frames before
@@ -46,7 +49,7 @@ class Progressive(Strategy):
         self,
         stage1_iterations: int = STAGE1_ITERATIONS,
         stage2_iterations: Optional[int] = None,
-        early_frames: int = EARLY_FRAMES,
+        early_frames: int | str = EARLY_FRAMES,
         stage1_batch: tuple[int, int] = STAGE1_BATCH,
         stage2_batch: tuple[int, int] = STAGE2_BATCH,
         hold_velocity: bool = False,

@@ -8,7 +8,9 @@ Grammar (whitespace ignored)::
 
 * ``GROUPS``: letters from X, A, S, M and G (= X + A), e.g. ``XAS``, ``SG``.
 * ``ITERATIONS``: iterations of the stage.
-* ``@WINDOW``: only the first WINDOW training frames (default: all training frames).
+* ``@WINDOW``: only the first WINDOW training frames (default: all training frames); ``@ff``: the
+  frames before ground contact, set per clip when the fit starts (at least 3; see
+  :data:`strategies.base.FREE_FLIGHT`).
 * ``/CxF``: C cameras and F frames per iteration (default: all; ``*`` keeps the default).
 * ``~LOSSES``: ``img``, ``geo`` or ``img+geo`` (default both).
 
@@ -20,13 +22,13 @@ from __future__ import annotations
 
 import re
 
-from strategies.base import GROUPS, Stage, StrategyError, expand_groups
+from strategies.base import FREE_FLIGHT, GROUPS, Stage, StrategyError, expand_groups
 
 __all__ = ["parse_schedule", "format_stage"]
 
 _STAGE = re.compile(
     r"^(?P<groups>[XASMG]+):(?P<iters>\d+)"
-    r"(?:@(?P<window>\d+))?"
+    r"(?:@(?P<window>\d+|ff))?"
     r"(?:/(?P<cams>\d+|\*)x(?P<frames>\d+|\*))?"
     r"(?:~(?P<losses>img\+geo|geo\+img|img|geo))?$"
 )
@@ -83,13 +85,14 @@ def _parse_stage(token: str, original: str) -> Stage:
             bad = sorted(set(token.split(":")[0]) - set("XASMG"))
             hint = f" (unknown group letter(s) {bad}: use X, A, S, M, G)"
         raise StrategyError(
-            f"malformed stage {token!r} in schedule {original!r}{hint}; expected GROUPS:ITERATIONS[@WINDOW][/CxF][~img|geo], "
-            "e.g. 'XAS:100@3/3x3'"
+            f"malformed stage {token!r} in schedule {original!r}{hint}; expected GROUPS:ITERATIONS[@WINDOW][/CxF][~img|geo] "
+            "(WINDOW a frame count or 'ff', the frames before ground contact), e.g. 'XAS:100@3/3x3'"
         )
     iters = int(m.group("iters"))
     if iters < 1:
         raise StrategyError(f"stage {token!r} in schedule {original!r} needs at least 1 iteration")
-    window = int(m.group("window")) if m.group("window") else None
+    window = m.group("window")
+    window = FREE_FLIGHT if window == "ff" else int(window) if window else None
     if window == 0:
         raise StrategyError(f"stage {token!r}: the frame window must be >= 1")
     cams = frames = None
@@ -107,7 +110,7 @@ def format_stage(stage: Stage) -> str:
     """The schedule-string form of one stage (inverse of parsing)."""
     out = "".join(g for g in GROUPS if g in stage.groups) + f":{stage.iterations}"
     if stage.frames:
-        out += f"@{stage.frames}"
+        out += f"@{stage.window_label()}"
     if stage.cameras_per_step or stage.frames_per_step:
         out += f"/{stage.cameras_per_step or '*'}x{stage.frames_per_step or '*'}"
     if tuple(stage.losses) != ("image", "geometry"):

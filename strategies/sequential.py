@@ -23,8 +23,8 @@ class Sequential(Strategy):
 
     Options:
         stage1_iterations (100), stage2_iterations (per material), appearance_iterations
-        (40000, GIC's "Stage 3"; 0 skips it), early_frames (3), stage1_batch (3, 3),
-        stage2_batch (3, 20), appearance_batch (1, 1).
+        (40000, GIC's "Stage 3"; 0 skips it), early_frames (3, or "free_flight": the frames before
+        ground contact), stage1_batch (3, 3), stage2_batch (3, 20), appearance_batch (1, 1).
     """
 
     option_defaults = {
@@ -42,7 +42,7 @@ class Sequential(Strategy):
         stage1_iterations: int = STAGE1_ITERATIONS,
         stage2_iterations: Optional[int] = None,
         appearance_iterations: int = APPEARANCE_ITERATIONS,
-        early_frames: int = EARLY_FRAMES,
+        early_frames: int | str = EARLY_FRAMES,
         stage1_batch: tuple[int, int] = STAGE1_BATCH,
         stage2_batch: tuple[int, int] = STAGE2_BATCH,
         appearance_batch: tuple[int, int] = (1, 1),

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tests.physics_fixtures import V0, fit_sim, tiny_scene
-from toolkit.physics.initial_velocity import estimate_initial_velocity, initial_velocity_from_input
+from toolkit.physics.initial_velocity import estimate_initial_velocity, free_flight_frames, initial_velocity_from_input
 
 G = np.array([0.0, -9.8, 0.0])
 DT = 1.0 / 24.0
@@ -154,6 +154,42 @@ def test_module_starts_from_the_estimate_explicit_wins_and_zero_opt_out(tiny_inp
     assert m.v0.abs().max() == 0 and m.hparams["v0_init"] == [0.0, 0.0, 0.0] and m.v0_estimate is None
     with pytest.raises(ValueError, match="'auto' or 'zero'"):
         InversePhysicsModule(tiny_input, v0_init="fast", **kw)
+
+
+def test_free_flight_frames_of_an_estimate():
+    assert free_flight_frames({"method": "ballistic", "frames": [0, 1, 2, 3, 4, 5]}) == 6
+    assert free_flight_frames({"method": "ballistic", "frames": [0, 2, 3]}) == 4  # an empty frame 1 was skipped
+    assert free_flight_frames({"method": "contact", "frames": [0, 1, 2, 3]}) is None  # on the ground at frame 0
+    assert free_flight_frames(None) is None
+
+
+def test_module_sets_the_free_flight_window_from_the_clip(tiny_input, tmp_path):
+    """A ``@ff`` stage gets the clip's frames before contact, samples only inside them, keeps ``@ff``
+    in the saved hyperparameter, and gets the same window when v0 is given (no start estimate) and
+    after a checkpoint round trip. The box dropped from 0.6 m is in free flight for all 5 training
+    frames; the one from 0.16 m lands at frame 3 and keeps the paper's 3."""
+    from toolkit.physics import InversePhysicsModule
+    from toolkit.physics.oracle import oracle_input
+
+    high = oracle_input(tiny_scene(tmp_path / "high", height=0.6), particle_spacing=0.02)
+    kw = dict(curriculum="XAS:2@ff/3x2,XAM:1", sim=fit_sim(), renderer="warp", optimize_params=["E"])
+    est = initial_velocity_from_input(high, fit_sim())
+    n = est.frames[-1] + 1
+    assert n == high.n_train == 5 and est.stop_reason == "last frame"
+    m = InversePhysicsModule(high, **kw)
+    assert [s.frames for s in m.stages] == [n, None] and m.hparams["curriculum"] == "XAS:2@ff/3x2,XAM:1"
+    assert m.curriculum.schedule_string("neo_hookean") == f"XAS:2@{n}/3x2,XAM:1"
+    seen = {f for step in range(30) for f in m._sample(m.stages[0], step)[1]}
+    assert seen == set(range(n))
+    given = InversePhysicsModule(high, v0_init=[0.0, 0.0, 0.0], **kw)
+    assert given.v0_estimate is None and [s.frames for s in given.stages] == [n, None]
+    ckpt: dict = {}
+    m.on_save_checkpoint(ckpt)
+    assert ckpt["projo4d"]["curriculum"][0]["frames"] == n
+    again = InversePhysicsModule(high, curriculum=m.hparams["curriculum"], sim=fit_sim(), renderer="warp", optimize_params=["E"])
+    assert again.curriculum.describe("neo_hookean") == ckpt["projo4d"]["curriculum"]
+    assert initial_velocity_from_input(tiny_input, fit_sim()).frames == [0, 1, 2]
+    assert [s.frames for s in InversePhysicsModule(tiny_input, **kw).stages] == [3, None]
 
 
 def test_a_frame_deep_in_contact_is_not_used():

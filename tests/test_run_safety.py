@@ -331,6 +331,17 @@ def test_bad_settings_fail_in_one_line_before_any_work(scene, tmp_path, capsys, 
     assert not out.exists()  # nothing written
 
 
+def test_a_free_flight_window_passes_the_settings_check(scene, tmp_path):
+    """``@ff`` is set per clip when the fit starts, so the check before any work neither compares it
+    with the training frames nor fails on it (it raised a TypeError in a benchmark's fit job)."""
+    for curriculum in ("XAS:4@ff/3x3,XAM:2", "progressive"):
+        s = _settings(scene, tmp_path / "run", geometry="oracle", curriculum=curriculum,
+                      curriculum_options={"early_frames": "free_flight"} if curriculum == "progressive" else {})
+        s.validate()
+    with pytest.raises(SettingsError, match="first 9 frames but the run has"):
+        _settings(scene, tmp_path / "run", geometry="oracle", curriculum="XAS:4@9,XAM:2").validate()
+
+
 def test_stage0_with_one_camera_is_refused_before_any_work(scene, tmp_path, capsys):
     """``--cameras 3`` is camera 3 alone (not three cameras): stage 0 cannot bound a body with one
     silhouette, so the run stops in one line naming the field (it divided by zero in stage 0's

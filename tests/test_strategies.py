@@ -39,6 +39,27 @@ def test_progressive_can_hold_v0_after_stage_1():
         get_strategy("progressive", hold_velocity="yes")
 
 
+def test_free_flight_window_is_set_per_clip():
+    """``early_frames="free_flight"`` (``@ff``): the window stays symbolic until the fit sets it from
+    the clip (at least the paper's 3 frames); the strategy it came from is unchanged."""
+    held = get_strategy("progressive", early_frames="free_flight", hold_velocity=True)
+    assert held.schedule_string("sand") == "XAS:100@ff/3x3,XAM:150/3x20" and held.has_free_flight_window("sand")
+    six = held.with_free_flight(6)
+    assert _active(six, "sand")[:100] == [("XAS", 6, (3, 3), ("image", "geometry"))] * 100
+    assert six.schedule_string("sand") == "XAS:100@6/3x3,XAM:150/3x20" and not six.has_free_flight_window("sand")
+    assert [s.name for s in six.stages("sand")] == ["stage1:XAS", "stage2:XAM"]
+    assert held.stages("sand")[0].frames == "free_flight"
+    assert held.with_free_flight(2).stages("sand")[0].frames == 3  # never fewer than the paper's first frames
+    assert held.with_free_flight(None).stages("sand")[0].frames == 3  # no estimate, or on the ground at frame 0
+    s = get_strategy("XA:5,S:10@ff/3x3~geo,M:5")
+    assert s.schedule_string() == "XA:5,S:10@ff/3x3~geo,M:5" and s.stage_at(5).stage.label() == "S@ff"
+    assert s.with_free_flight(7).stage_at(5).stage.frames == 7 and s.with_free_flight(7).stage_at(0).stage.frames is None
+    assert get_strategy("sequential", early_frames="free_flight").stages("sand")[0].frames == "free_flight"
+    assert [x.label() for x in get_strategy("cyclic", early_frames="free_flight").stages("sand")][:3] == ["XA", "S@ff", "M"]
+    with pytest.raises(StrategyError, match="positive integer, None \\(all\\) or 'free_flight', got 'ff'"):
+        get_strategy("progressive", early_frames="ff").stages("sand")
+
+
 def test_sequential_is_gic():
     steps = _active(get_strategy("sequential", appearance_iterations=500), "plasticine")
     assert steps[:100] == [("S", 3, (3, 3), ("geometry",))] * 100  # velocity from the geometric loss, first frames
@@ -88,6 +109,7 @@ def test_schedule_strings_round_trip_and_expand_repeats():
     ("(S:10,M:10", r"missing '\)'"),
     ("(S:10,M:10x2", r"malformed stage 'M:10x2'"),
     ("S:10@0", "frame window must be >= 1"),
+    ("S:10@fly", "WINDOW a frame count or 'ff'"),
     ("S:10,,M:5", "malformed stage ''"),
 ])
 def test_malformed_schedules_give_clear_errors(text, pattern):

@@ -175,13 +175,13 @@ def _check_stages(stages, spec, n_train: int, n_cameras: int, strict: bool) -> N
     for k, st in enumerate(stages):
         where = f"stage {k + 1} ({st.name})"
         notes = []
-        if st.frames is not None and st.frames > n_train:
+        if isinstance(st.frames, int) and st.frames > n_train:  # a free-flight window (@ff) is set per clip
             what = (f"{where} fits the first {st.frames} frames but the run has {n_train} training frames "
                     "(set n_train or a smaller @window)")
             if strict:
                 raise SettingsError("curriculum", spec, what)
             notes.append(what)
-        window = min(st.frames or n_train, n_train)
+        window = min(st.frames if isinstance(st.frames, int) else n_train, n_train)
         if st.frames_per_step is not None and st.frames_per_step > window:
             notes.append(f"{where} samples {st.frames_per_step} frames per iteration from a window of {window}")
         if st.cameras_per_step is not None and st.cameras_per_step > n_cameras:

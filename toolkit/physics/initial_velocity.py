@@ -45,7 +45,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["describe_estimate", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input", "CONTACT_BAND_CELLS",
+__all__ = ["describe_estimate", "free_flight_frames", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input", "CONTACT_BAND_CELLS",
            "CONTACT_FIT_FRAMES", "TOUCH_TOLERANCE_CELLS"]
 
 #: a frame whose lowest surface point is within this many grid cells of the ground is in contact
@@ -90,6 +90,16 @@ def describe_estimate(est: dict) -> str:
     f = est["frames"]
     return (f"stage-0 {est['method']} estimate ({', '.join(f'{c:.3g}' for c in est['v0'])}) m/s, fitted over frames "
             f"{f[0]}-{f[-1]} ({len(f)} frames; {est['stop_reason']})")
+
+
+def free_flight_frames(est: Optional[dict]) -> Optional[int]:
+    """How many training frames, from frame 0, a :meth:`V0Estimate.to_dict` record found in free
+    flight (its last fitted frame + 1), or ``None`` without a ballistic estimate (none, or a body on
+    the ground at frame 0). A ``free_flight`` stage window (:data:`strategies.base.FREE_FLIGHT`)
+    is set from it."""
+    if not est or est.get("method") != "ballistic" or not est.get("frames"):
+        return None
+    return int(est["frames"][-1]) + 1
 
 
 def _fit(t: np.ndarray, x: np.ndarray, gravity: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

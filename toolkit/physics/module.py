@@ -45,7 +45,8 @@ from toolkit.physics.embedding import GAUSSIAN_SHAPES, embed, local_deformation
 from toolkit.physics.inputs import PhysicsInput
 from toolkit.physics.objective import FitObjectiveMixin
 from toolkit.physics.prediction import PredictionMixin
-from toolkit.physics.starting_state import StepStream, cosine_with_warmup, initial_v0, surface_particles
+from toolkit.physics.starting_state import (StepStream, cosine_with_warmup, free_flight_curriculum, initial_v0,
+                                             surface_particles)
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -225,6 +226,9 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
             self.hparams["v0_init"] = start.hparam[0]  # None or 3 numbers (a resume re-estimates the same)
         #: the stage-0 ballistic estimate v0 started from (``None`` when it did not)
         self.v0_estimate: Optional[dict] = start.estimate
+        # a stage window "@ff" becomes this clip's frames before ground contact (a resume sets the same)
+        self.curriculum = free_flight_curriculum(self.curriculum, self.material.registry_name or None, self.v0_estimate, inp, cfg)
+        self.stages = self.curriculum.stages(self.material.registry_name or None)
         self.v0 = nn.Parameter(torch.tensor(start.v0, dtype=torch.float32))
         # resting on a sticky/slip ground at frame 0: v0 has no normal component (issue #24, toolkit.physics.contact)
         self.contact_normal = ground_contact_normal(inp.particles, cfg, inp.surfaces)

@@ -15,10 +15,12 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
+from strategies import Strategy
+from strategies.base import FREE_FLIGHT_MIN_FRAMES
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
-__all__ = ["StartingVelocity", "initial_v0", "surface_particles", "cosine_with_warmup", "StepStream"]
+__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "surface_particles", "cosine_with_warmup", "StepStream"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +68,27 @@ def initial_v0(v0_init: Union[None, str, list[float]], inp: PhysicsInput, cfg: S
     if len(v) != 3:
         raise ValueError(f"v0_init must have 3 components (m/s), got {v0_init!r}")
     return StartingVelocity(v)
+
+
+def free_flight_curriculum(curriculum: Strategy, material: Optional[str], estimate: Optional[dict], inp: PhysicsInput,
+                           cfg: SimConfig) -> Strategy:
+    """``curriculum`` with its ``free_flight`` windows (``@ff``) set to this clip's training frames
+    before ground contact: those of the stage-0 ballistic estimate ``estimate`` (a
+    ``V0Estimate.to_dict()`` record; made here from ``inp`` when ``None``, e.g. v0 was given), and
+    at least :data:`~strategies.base.FREE_FLIGHT_MIN_FRAMES`. Without such windows it is returned
+    as it is. The estimate is deterministic, so a resume sets the same window."""
+    if not curriculum.has_free_flight_window(material):
+        return curriculum
+    from toolkit.physics.initial_velocity import free_flight_frames, initial_velocity_from_input
+
+    if estimate is None:
+        found = initial_velocity_from_input(inp, cfg)
+        estimate = found.to_dict() if found is not None else None
+    n = free_flight_frames(estimate)
+    log.info("free-flight window (@ff): the first %d training frames (%s)", max(n or 0, FREE_FLIGHT_MIN_FRAMES),
+             f"the stage-0 estimate found frames 0-{n - 1} before ground contact" if n else
+             f"no free-flight frames found, so the first {FREE_FLIGHT_MIN_FRAMES}")
+    return curriculum.with_free_flight(n)
 
 
 def surface_particles(inp: PhysicsInput) -> torch.Tensor:
