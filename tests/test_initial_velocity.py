@@ -192,6 +192,35 @@ def test_module_sets_the_free_flight_window_from_the_clip(tiny_input, tmp_path):
     assert [s.frames for s in InversePhysicsModule(tiny_input, **kw).stages] == [3, None]
 
 
+def test_a_held_v0_that_starts_at_zero_is_warned(tiny_input, caplog):
+    """Stage 0 lost the body after frame 1 (as on a 64 px scene imaged differently): no estimate, v0
+    starts at zero. A curriculum that holds v0 after its first stage says so before any work; one
+    that fits v0 in every material stage, or a given v0, does not."""
+    import dataclasses
+    import logging
+
+    from strategies import get_strategy
+    from toolkit.physics import InversePhysicsModule
+    from toolkit.physics.starting_state import velocity_held_after
+
+    assert velocity_held_after(get_strategy("progressive", hold_velocity=True).stages("sand")) == 0
+    assert velocity_held_after(get_strategy("sequential").stages("sand")) == 0  # GIC holds v0 too
+    assert velocity_held_after(get_strategy("progressive").stages("sand")) is None
+    assert velocity_held_after(get_strategy("XA:5,M:5").stages()) is None  # v0 never fitted
+    lost = dataclasses.replace(tiny_input, surfaces=[s if i < 2 else s[:0] for i, s in enumerate(tiny_input.surfaces)])
+    kw = dict(sim=fit_sim(), renderer="warp", optimize_params=["E"])
+    for curriculum, v0_init, warned in (("XAS:2@3,XAM:1", None, True), ("XAS:2@3,XASM:1", None, False),
+                                        ("XAS:2@3,XAM:1", [0.5, -0.8, 0.3], False)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="toolkit.physics.starting_state"):
+            m = InversePhysicsModule(lost, curriculum=curriculum, v0_init=v0_init, **kw)
+        assert m.v0_estimate is None
+        said = [r.getMessage() for r in caplog.records if "v0 starts at zero" in r.getMessage()]
+        assert bool(said) == warned, (curriculum, v0_init, said)
+        if warned:
+            assert "fitted only up to stage 1 (XAS@3, 2 iterations)" in said[0] and m.v0.abs().max() == 0
+
+
 def test_a_frame_deep_in_contact_is_not_used():
     """Two free frames, then frame 2 already 1.2 cm off the parabola inside the contact band (the
     demo scene's pattern): nothing with the default 3 frames; min_frames=2 gives the exact

@@ -15,12 +15,12 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
-from strategies import Strategy
+from strategies import Stage, Strategy
 from strategies.base import FREE_FLIGHT_MIN_FRAMES
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
-__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "surface_particles", "cosine_with_warmup", "StepStream"]
+__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_held_after", "warn_if_zero_start_is_held", "surface_particles", "cosine_with_warmup", "StepStream"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,35 @@ def free_flight_curriculum(curriculum: Strategy, material: Optional[str], estima
              f"the stage-0 estimate found frames 0-{n - 1} before ground contact" if n else
              f"no free-flight frames found, so the first {FREE_FLIGHT_MIN_FRAMES}")
     return curriculum.with_free_flight(n)
+
+
+def velocity_held_after(stages: list[Stage]) -> Optional[int]:
+    """Index of the last stage that fits v0 (``S``) when a later stage fits the material (``M``)
+    without it: v0 is held from then on (progressive with ``hold_velocity``, GIC's sequential).
+    ``None`` when every material stage also fits v0, or no stage fits it."""
+    fits_v0 = [i for i, st in enumerate(stages) if "S" in st.groups]
+    if not fits_v0:
+        return None
+    last = fits_v0[-1]
+    return last if any("M" in st.groups for st in stages[last + 1:]) else None
+
+
+def warn_if_zero_start_is_held(start: StartingVelocity, stages: list[Stage]) -> Optional[str]:
+    """Warn (and return the message) when v0 was to start at the stage-0 estimate, there was none,
+    so it starts at zero, and the curriculum holds v0 after its first stages. Then those stages
+    alone must bring v0 from zero, and a fit of 64 px scenes imaged differently ended 0.12 m/s off
+    that way (``docs/results/paper_size.md``). ``None`` (no warning) otherwise."""
+    if start.estimate is not None or start.hparam != (None,):
+        return None
+    k = velocity_held_after(stages)
+    if k is None:
+        return None
+    st = stages[k]
+    msg = (f"v0 starts at zero (stage 0 gave fewer than 3 frames before contact to estimate it from) and is fitted "
+           f"only up to stage {k + 1} ({st.name}, {st.iterations} iterations); the later stages keep it where that "
+           "stage leaves it. Give v0 (v0_init), or fit it in the later stages too (progressive without hold_velocity)")
+    log.warning(msg)
+    return msg
 
 
 def surface_particles(inp: PhysicsInput) -> torch.Tensor:
