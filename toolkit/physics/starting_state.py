@@ -20,7 +20,8 @@ from strategies.base import FREE_FLIGHT_MIN_FRAMES
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
-__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_held_after", "warn_if_zero_start_is_held", "surface_particles", "cosine_with_warmup", "StepStream"]
+__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_held_after", "warn_if_zero_start_is_held",
+           "surface_particles", "cosine_with_warmup", "StepStream"]
 
 log = logging.getLogger(__name__)
 
