@@ -22,7 +22,8 @@ import copy
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, ClassVar, Mapping, Optional, Sequence
 
-__all__ = ["FREE_FLIGHT", "FREE_FLIGHT_MIN_FRAMES", "GROUPS", "LOSSES", "Stage", "Strategy", "StrategyError", "expand_groups"]
+__all__ = ["FREE_FLIGHT", "FREE_FLIGHT_MIN_FRAMES", "GROUPS", "LOSSES", "Stage", "Strategy", "StrategyError", "expand_groups",
+           "free_flight_window"]
 
 GROUPS = ("X", "A", "S", "M")
 LOSSES = ("image", "geometry")
@@ -31,6 +32,12 @@ LOSSES = ("image", "geometry")
 FREE_FLIGHT = "free_flight"
 #: the fewest frames a ``free_flight`` window holds (the paper's first-frames window, 3)
 FREE_FLIGHT_MIN_FRAMES = 3
+
+
+def free_flight_window(free_flight_frames: Optional[int]) -> int:
+    """The frames a ``free_flight`` window holds for a clip with ``free_flight_frames`` frames before
+    contact: that many, at least :data:`FREE_FLIGHT_MIN_FRAMES` (that many when ``None``)."""
+    return max(int(free_flight_frames or 0), FREE_FLIGHT_MIN_FRAMES)
 
 
 class StrategyError(ValueError):
@@ -112,13 +119,18 @@ class Stage:
         """The window as the schedule string writes it: ``"3"``, ``"ff"`` (free flight) or ``""`` (all)."""
         return "ff" if self.frames == FREE_FLIGHT else str(self.frames or "")
 
+    def window(self, n_train: int) -> int:
+        """How many of ``n_train`` training frames the stage sees: its window, capped at ``n_train``;
+        all of them for ``None`` and for a ``free_flight`` window not yet set (its upper bound)."""
+        return min(self.frames if isinstance(self.frames, int) else n_train, n_train)
+
     def with_free_flight(self, free_flight_frames: Optional[int]) -> "Stage":
         """This stage with a ``free_flight`` window set to ``max(free_flight_frames,
         FREE_FLIGHT_MIN_FRAMES)`` frames (``FREE_FLIGHT_MIN_FRAMES`` when ``None``: no estimate, or
         the body touches the ground at frame 0); any other stage unchanged."""
         if self.frames != FREE_FLIGHT:
             return self
-        return replace(self, frames=max(int(free_flight_frames or 0), FREE_FLIGHT_MIN_FRAMES))
+        return replace(self, frames=free_flight_window(free_flight_frames))
 
     def to_dict(self) -> dict:
         d = asdict(self)

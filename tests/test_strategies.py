@@ -51,6 +51,9 @@ def test_free_flight_window_is_set_per_clip():
     assert held.stages("sand")[0].frames == "free_flight"
     assert held.with_free_flight(2).stages("sand")[0].frames == 3  # never fewer than the paper's first frames
     assert held.with_free_flight(None).stages("sand")[0].frames == 3  # no estimate, or on the ground at frame 0
+    # the frames a stage sees of a clip's 14 training frames: a symbolic window counts as all (its upper bound)
+    assert [s.window(14) for s in held.stages("sand")] == [14, 14] and [s.window(14) for s in six.stages("sand")] == [6, 14]
+    assert six.stages("sand")[0].window(4) == 4
     s = get_strategy("XA:5,S:10@ff/3x3~geo,M:5")
     assert s.schedule_string() == "XA:5,S:10@ff/3x3~geo,M:5" and s.stage_at(5).stage.label() == "S@ff"
     assert s.with_free_flight(7).stage_at(5).stage.frames == 7 and s.with_free_flight(7).stage_at(0).stage.frames is None

@@ -181,7 +181,7 @@ def _check_stages(stages, spec, n_train: int, n_cameras: int, strict: bool) -> N
             if strict:
                 raise SettingsError("curriculum", spec, what)
             notes.append(what)
-        window = min(st.frames if isinstance(st.frames, int) else n_train, n_train)
+        window = st.window(n_train)
         if st.frames_per_step is not None and st.frames_per_step > window:
             notes.append(f"{where} samples {st.frames_per_step} frames per iteration from a window of {window}")
         if st.cameras_per_step is not None and st.cameras_per_step > n_cameras:

@@ -149,7 +149,7 @@ def estimate_job(job: dict, info: dict, profile: DeviceProfile, n_particles: Opt
         stages = []
     n_evals = 0
     for st in stages:
-        window = min(st.frames if isinstance(st.frames, int) else n_train, n_train)  # a free-flight window: at most all
+        window = st.window(n_train)
         frames = min(st.frames_per_step or window, window)
         cams = min(st.cameras_per_step or 3, C)
         sim_cost = 0.0 if not (st.groups & {"X", "S", "M"}) else window * substeps * substep * p.backward_factor

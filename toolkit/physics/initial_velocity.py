@@ -45,7 +45,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-__all__ = ["describe_estimate", "free_flight_frames", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input", "CONTACT_BAND_CELLS",
+__all__ = ["describe_estimate", "free_flight_frames", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input",
+           "CONTACT_BAND_CELLS",
            "CONTACT_FIT_FRAMES", "TOUCH_TOLERANCE_CELLS"]
 
 #: a frame whose lowest surface point is within this many grid cells of the ground is in contact

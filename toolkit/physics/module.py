@@ -361,7 +361,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         cams = list(self.input.train_cameras)
         if stage.cameras_per_step and stage.cameras_per_step < len(cams):
             cams = [cams[i] for i in sorted(torch.randperm(len(cams), generator=gen)[: stage.cameras_per_step].tolist())]
-        window = min(stage.frames or self.input.n_train, self.input.n_train)
+        window = stage.window(self.input.n_train)
         frames = list(range(window))
         if stage.frames_per_step and stage.frames_per_step < window:
             frames = sorted(torch.randperm(window, generator=gen)[: stage.frames_per_step].tolist())

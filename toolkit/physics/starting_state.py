@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from strategies import Stage, Strategy
-from strategies.base import FREE_FLIGHT_MIN_FRAMES
+from strategies.base import FREE_FLIGHT_MIN_FRAMES, free_flight_window
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
@@ -86,7 +86,7 @@ def free_flight_curriculum(curriculum: Strategy, material: Optional[str], estima
         found = initial_velocity_from_input(inp, cfg)
         estimate = found.to_dict() if found is not None else None
     n = free_flight_frames(estimate)
-    log.info("free-flight window (@ff): the first %d training frames (%s)", max(n or 0, FREE_FLIGHT_MIN_FRAMES),
+    log.info("free-flight window (@ff): the first %d training frames (%s)", free_flight_window(n),
              f"the stage-0 estimate found frames 0-{n - 1} before ground contact" if n else
              f"no free-flight frames found, so the first {FREE_FLIGHT_MIN_FRAMES}")
     return curriculum.with_free_flight(n)
