@@ -76,6 +76,10 @@ class Stage:
         losses: loss terms that are on: ``"image"`` and/or ``"geometry"``.
         lr_scale: learning-rate multiplier per group (e.g. ``{"S": 0.5}``).
         name: a label for logs and plots (default: derived from the groups).
+        velocity_if_unmeasured: the stage also fits v0 (``S``) when v0 did not start from a
+            measurement (the stage-0 ballistic estimate or a given v0), and holds it when it did;
+            set per clip when the fit starts (:meth:`Strategy.with_velocity_start`). Schedule
+            string ``XA[S]M``. Needs ``S`` not in ``groups``.
     """
 
     groups: frozenset[str]
@@ -86,6 +90,7 @@ class Stage:
     losses: tuple[str, ...] = LOSSES
     lr_scale: Mapping[str, float] = field(default_factory=dict)
     name: str = ""
+    velocity_if_unmeasured: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "groups", expand_groups(self.groups) if not isinstance(self.groups, frozenset) else self.groups)
@@ -107,13 +112,23 @@ class Stage:
         if bad_lr:
             raise StrategyError(f"lr_scale has unknown group(s) {sorted(bad_lr)}")
         object.__setattr__(self, "lr_scale", dict(self.lr_scale))
+        if not isinstance(self.velocity_if_unmeasured, bool):
+            raise StrategyError(f"stage velocity_if_unmeasured must be true or false, got {self.velocity_if_unmeasured!r}")
+        if self.velocity_if_unmeasured and "S" in self.groups:
+            raise StrategyError("a stage that fits v0 only when it was not measured ([S]) must not also fit it always (S)")
         if not self.name:
             object.__setattr__(self, "name", self.label())
 
     def label(self) -> str:
-        """Compact label, e.g. ``XAS@3`` or ``XAS@ff`` (the schedule-string form without iterations)."""
-        g = "".join(x for x in GROUPS if x in self.groups)
-        return g + (f"@{self.window_label()}" if self.frames else "")
+        """Compact label, e.g. ``XAS@3``, ``XAS@ff`` or ``XA[S]M`` (the schedule-string form without
+        iterations)."""
+        return self.groups_label() + (f"@{self.window_label()}" if self.frames else "")
+
+    def groups_label(self) -> str:
+        """The groups as the schedule string writes them: ``XASM``, or ``XA[S]M`` with
+        :attr:`velocity_if_unmeasured`."""
+        return "".join(x if x in self.groups else "[S]" if x == "S" and self.velocity_if_unmeasured else ""
+                       for x in GROUPS)
 
     def window_label(self) -> str:
         """The window as the schedule string writes it: ``"3"``, ``"ff"`` (free flight) or ``""`` (all)."""
@@ -131,6 +146,16 @@ class Stage:
         if self.frames != FREE_FLIGHT:
             return self
         return replace(self, frames=free_flight_window(free_flight_frames))
+
+    def with_velocity_start(self, measured: bool) -> "Stage":
+        """This stage with a :attr:`velocity_if_unmeasured` rule resolved: it holds v0 (groups
+        unchanged) when v0 started from a measurement, and fits it (``S`` added) when it did not;
+        its name's ``[S]`` follows. Any other stage unchanged."""
+        if not self.velocity_if_unmeasured:
+            return self
+        groups = self.groups if measured else self.groups | {"S"}
+        resolved = replace(self, groups=groups, velocity_if_unmeasured=False, name="")
+        return replace(resolved, name=self.name.replace("[S]", "" if measured else "S")) if self.name != self.label() else resolved
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -182,6 +207,8 @@ class Strategy:
         self._cache: dict = {}
         #: ``(frames,)`` once :meth:`with_free_flight` set the clip's free-flight window, else None
         self._free_flight: Optional[tuple[Optional[int]]] = None
+        #: whether v0 started from a measurement, once :meth:`with_velocity_start` set it, else None
+        self._velocity_measured: Optional[bool] = None
 
     @property
     def name(self) -> str:
@@ -202,6 +229,8 @@ class Strategy:
                     raise StrategyError(f"strategy {self.name!r} produced {s!r}, expected a Stage")
             if self._free_flight is not None:
                 stages = [s.with_free_flight(self._free_flight[0]) for s in stages]
+            if self._velocity_measured is not None:
+                stages = [s.with_velocity_start(self._velocity_measured) for s in stages]
             self._cache[material] = stages
         return self._cache[material]
 
@@ -218,6 +247,21 @@ class Strategy:
         out.options = dict(self.options)
         out._cache = {}
         out._free_flight = (free_flight_frames,)
+        return out
+
+    def has_velocity_rule(self, material: str | None = None) -> bool:
+        """Whether a stage fits v0 only when it was not measured (``[S]``) and that is not yet set
+        (:meth:`with_velocity_start`)."""
+        return any(s.velocity_if_unmeasured for s in self.stages(material))
+
+    def with_velocity_start(self, measured: bool) -> "Strategy":
+        """A copy of this strategy whose ``[S]`` stages hold v0 (``measured``: v0 started from the
+        stage-0 ballistic estimate or was given) or fit it (v0 started at zero, a guess). The fit
+        calls it once v0's start is known; this strategy is unchanged."""
+        out = copy.copy(self)
+        out.options = dict(self.options)
+        out._cache = {}
+        out._velocity_measured = bool(measured)
         return out
 
     def total_iterations(self, material: str | None = None) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Optional
 
 from strategies import register_strategy
@@ -33,7 +34,11 @@ class Progressive(Strategy):
             better: stage 1's v0 from three small frames was up to 0.01-0.02 m/s off (100 or 30
             stage-1 iterations), which stage 2 corrects. On five 400 px elastic and plasticine
             scenes (round 21) v0 was closer on 4 of 5, plasticine's material and future better,
-            elastic's a wash.
+            elastic's a wash. ``"auto"``: hold v0 when it starts from a measurement (the stage-0
+            ballistic estimate, or a given ``v0_init``) and fit it in Stage 2 as the paper does when
+            it starts at zero (``XA[S]M``, set when the fit starts). On 64 px scenes imaged
+            differently, stage 0 lost one body after frame 1, v0 started at zero, and holding it
+            left it 0.12 m/s off; ``"auto"`` fits it there.
     """
 
     option_defaults = {
@@ -52,20 +57,22 @@ class Progressive(Strategy):
         early_frames: int | str = EARLY_FRAMES,
         stage1_batch: tuple[int, int] = STAGE1_BATCH,
         stage2_batch: tuple[int, int] = STAGE2_BATCH,
-        hold_velocity: bool = False,
+        hold_velocity: bool | str = False,
     ):
-        if not isinstance(hold_velocity, bool):
-            raise ValueError(f"progressive: hold_velocity must be true or false, got {hold_velocity!r}")
+        if not isinstance(hold_velocity, bool) and hold_velocity != "auto":
+            raise ValueError(f"progressive: hold_velocity must be true, false or 'auto' (hold v0 when it starts from a "
+                             f"measurement), got {hold_velocity!r}")
         super().__init__(stage1_iterations=stage1_iterations, stage2_iterations=stage2_iterations, early_frames=early_frames,
                          stage1_batch=tuple(stage1_batch), stage2_batch=tuple(stage2_batch), hold_velocity=hold_velocity)
 
     def build_stages(self, material: str | None = None) -> list[Stage]:
         o = self.options
         n2 = o["stage2_iterations"] or stage2_iterations(material)
-        second = "XAM" if o["hold_velocity"] else "XASM"
+        hold = o["hold_velocity"]
+        second = Stage(frozenset("XAM" if hold else "XASM"), n2, cameras_per_step=o["stage2_batch"][0],
+                       frames_per_step=o["stage2_batch"][1], velocity_if_unmeasured=hold == "auto")
         return [
             Stage(frozenset("XAS"), o["stage1_iterations"], frames=o["early_frames"], cameras_per_step=o["stage1_batch"][0],
                   frames_per_step=o["stage1_batch"][1], name="stage1:XAS"),
-            Stage(frozenset(second), n2, cameras_per_step=o["stage2_batch"][0], frames_per_step=o["stage2_batch"][1],
-                  name=f"stage2:{second}"),
+            replace(second, name=f"stage2:{second.groups_label()}"),
         ]

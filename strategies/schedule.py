@@ -6,7 +6,10 @@ Grammar (whitespace ignored)::
     item     := stage | "(" schedule ")" "x" COUNT
     stage    := GROUPS ":" ITERATIONS ["@" WINDOW] ["/" CAMERAS "x" FRAMES] ["~" LOSSES]
 
-* ``GROUPS``: letters from X, A, S, M and G (= X + A), e.g. ``XAS``, ``SG``.
+* ``GROUPS``: letters from X, A, S, M and G (= X + A), e.g. ``XAS``, ``SG``. ``[S]`` fits v0
+  only when it did not start from a measurement (the stage-0 ballistic estimate or a given v0)
+  and holds it when it did, set per clip when the fit starts (e.g. ``XA[S]M``; see
+  :attr:`strategies.base.Stage.velocity_if_unmeasured`).
 * ``ITERATIONS``: iterations of the stage.
 * ``@WINDOW``: only the first WINDOW training frames (default: all training frames); ``@ff``: the
   frames before ground contact, set per clip when the fit starts (at least 3; see
@@ -22,12 +25,12 @@ from __future__ import annotations
 
 import re
 
-from strategies.base import FREE_FLIGHT, GROUPS, Stage, StrategyError, expand_groups
+from strategies.base import FREE_FLIGHT, Stage, StrategyError, expand_groups
 
 __all__ = ["parse_schedule", "format_stage"]
 
 _STAGE = re.compile(
-    r"^(?P<groups>[XASMG]+):(?P<iters>\d+)"
+    r"^(?P<groups>[XAMG]*(?:\[S\])?[XASMG]*):(?P<iters>\d+)"
     r"(?:@(?P<window>\d+|ff))?"
     r"(?:/(?P<cams>\d+|\*)x(?P<frames>\d+|\*))?"
     r"(?:~(?P<losses>img\+geo|geo\+img|img|geo))?$"
@@ -79,14 +82,18 @@ def _parse_stage(token: str, original: str) -> Stage:
     m = _STAGE.match(token)
     if not m:
         hint = ""
+        head = token.split(":")[0].replace("[S]", "")
         if ":" not in token:
             hint = " (missing ':ITERATIONS')"
-        elif token.split(":")[0] and set(token.split(":")[0]) - set("XASMG"):
-            bad = sorted(set(token.split(":")[0]) - set("XASMG"))
+        elif "[" in head or "]" in head or token.split(":")[0].count("[S]") > 1:
+            hint = " (only v0 can be conditional: '[S]', once)"
+        elif head and set(head) - set("XASMG"):
+            bad = sorted(set(head) - set("XASMG"))
             hint = f" (unknown group letter(s) {bad}: use X, A, S, M, G)"
         raise StrategyError(
             f"malformed stage {token!r} in schedule {original!r}{hint}; expected GROUPS:ITERATIONS[@WINDOW][/CxF][~img|geo] "
-            "(WINDOW a frame count or 'ff', the frames before ground contact), e.g. 'XAS:100@3/3x3'"
+            "(WINDOW a frame count or 'ff', the frames before ground contact; '[S]' in GROUPS: v0 held when measured), "
+            "e.g. 'XAS:100@3/3x3' or 'XA[S]M:150'"
         )
     iters = int(m.group("iters"))
     if iters < 1:
@@ -102,13 +109,21 @@ def _parse_stage(token: str, original: str) -> Stage:
         if cams == 0 or frames == 0:
             raise StrategyError(f"stage {token!r}: cameras and frames per iteration must be >= 1")
     losses = _LOSS_NAMES[m.group("losses")] if m.group("losses") else ("image", "geometry")
-    return Stage(expand_groups(m.group("groups")), iters, frames=window, cameras_per_step=cams, frames_per_step=frames,
-                 losses=losses)
+    letters = m.group("groups")
+    conditional = "[S]" in letters
+    letters = letters.replace("[S]", "")
+    if not letters:
+        raise StrategyError(f"stage {token!r} in schedule {original!r} needs a parameter group besides '[S]' (X, A, M or G)")
+    groups = expand_groups(letters)
+    if conditional and "S" in groups:
+        raise StrategyError(f"stage {token!r} in schedule {original!r} fits v0 both always (S) and only when not measured ([S])")
+    return Stage(groups, iters, frames=window, cameras_per_step=cams, frames_per_step=frames, losses=losses,
+                 velocity_if_unmeasured=conditional)
 
 
 def format_stage(stage: Stage) -> str:
     """The schedule-string form of one stage (inverse of parsing)."""
-    out = "".join(g for g in GROUPS if g in stage.groups) + f":{stage.iterations}"
+    out = stage.groups_label() + f":{stage.iterations}"
     if stage.frames:
         out += f"@{stage.window_label()}"
     if stage.cameras_per_step or stage.frames_per_step:

@@ -111,7 +111,7 @@ def test_camera_subsets_and_strategy_parsing():
     with pytest.raises(BenchmarkError, match="no option"):
         strategy_options(parse_strategy("joint", {"cycles": 2}), {}, "sand")
     # a bad option value is refused when the plan is made, before any scene or stage 0 runs
-    with pytest.raises(BenchmarkError, match="strategy held .progressive.*hold_velocity must be true or false, got 'yes'"):
+    with pytest.raises(BenchmarkError, match="strategy held .progressive.*hold_velocity must be true, false or 'auto'.*got 'yes'"):
         strategy_options(parse_strategy("held=progressive", {"hold_velocity": "yes"}), {}, "sand")
     assert strategy_options(parse_strategy("held=progressive", {"hold_velocity": True}), {}, "sand") == {"hold_velocity": True}
 

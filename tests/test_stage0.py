@@ -197,8 +197,9 @@ def test_compressed_schedule_scales_every_iteration_count():
     # the frames of the dynamic phase come in over its first third (GIC: all at once), at any length
     assert (full.frame_curriculum, ten.frame_curriculum) == (12_300, 3_075)
     assert Stage0Schedule.compressed(100).frame_curriculum == 31 and Stage0Schedule().frame_curriculum == 0
-    # so is the silhouette anchor (GIC and the tiny schedule: none)
-    assert (full.lambda_anchor, ten.lambda_anchor, Stage0Schedule.tiny().lambda_anchor) == (1.0, 1.0, 0.0)
+    # so is the silhouette anchor (GIC: none), and in the tiny schedule too
+    assert (full.lambda_anchor, ten.lambda_anchor, Stage0Schedule.tiny().lambda_anchor) == (1.0, 1.0, 1.0)
+    assert Stage0Schedule().lambda_anchor == 0.0
     for name, bad in (("frame_curriculum", -1), ("lambda_anchor", -0.5), ("anchor_tolerance", float("nan"))):
         with pytest.raises(ValueError, match=f"{name} must be >= 0"):
             Stage0Schedule(**{name: bad})

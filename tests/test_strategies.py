@@ -35,7 +35,7 @@ def test_progressive_can_hold_v0_after_stage_1():
     assert [s.name for s in held.stages("newtonian")] == ["stage1:XAS", "stage2:XAM"]
     # the same curriculum as the schedule string a benchmark could pass by hand
     assert _active(get_strategy("XAS:100@3/3x3,XAM:250/3x20"), "newtonian") == steps
-    with pytest.raises(ValueError, match="hold_velocity must be true or false, got 'yes'"):
+    with pytest.raises(ValueError, match="hold_velocity must be true, false or 'auto' .*, got 'yes'"):
         get_strategy("progressive", hold_velocity="yes")
 
 

@@ -46,7 +46,7 @@ from toolkit.physics.inputs import PhysicsInput
 from toolkit.physics.objective import FitObjectiveMixin
 from toolkit.physics.prediction import PredictionMixin
 from toolkit.physics.starting_state import (StepStream, cosine_with_warmup, free_flight_curriculum, initial_v0,
-                                             surface_particles, warn_if_zero_start_is_held)
+                                             surface_particles, velocity_start_curriculum, warn_if_zero_start_is_held)
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -228,6 +228,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         self.v0_estimate: Optional[dict] = start.estimate
         # a stage window "@ff" becomes this clip's frames before ground contact (a resume sets the same)
         self.curriculum = free_flight_curriculum(self.curriculum, self.material.registry_name or None, self.v0_estimate, inp, cfg)
+        self.curriculum = velocity_start_curriculum(self.curriculum, self.material.registry_name or None, start)
         self.stages = self.curriculum.stages(self.material.registry_name or None)
         warn_if_zero_start_is_held(start, self.stages)
         self.v0 = nn.Parameter(torch.tensor(start.v0, dtype=torch.float32))

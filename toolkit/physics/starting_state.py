@@ -20,8 +20,8 @@ from strategies.base import FREE_FLIGHT_MIN_FRAMES, free_flight_window
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
-__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_held_after", "warn_if_zero_start_is_held",
-           "surface_particles", "cosine_with_warmup", "StepStream"]
+__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_start_curriculum", "velocity_held_after",
+           "warn_if_zero_start_is_held", "surface_particles", "cosine_with_warmup", "StepStream"]
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +40,12 @@ class StartingVelocity:
     v0: list[float]
     hparam: Optional[tuple] = None
     estimate: Optional[dict] = None
+
+    @property
+    def measured(self) -> bool:
+        """Whether v0 starts from a measurement: the stage-0 ballistic estimate or a given v0 (not
+        zero for lack of an estimate, nor ``"zero"``)."""
+        return self.estimate is not None or self.hparam is None
 
 
 def initial_v0(v0_init: Union[None, str, list[float]], inp: PhysicsInput, cfg: SimConfig) -> StartingVelocity:
@@ -90,6 +96,18 @@ def free_flight_curriculum(curriculum: Strategy, material: Optional[str], estima
              f"the stage-0 estimate found frames 0-{n - 1} before ground contact" if n else
              f"no free-flight frames found, so the first {FREE_FLIGHT_MIN_FRAMES}")
     return curriculum.with_free_flight(n)
+
+
+def velocity_start_curriculum(curriculum: Strategy, material: Optional[str], start: StartingVelocity) -> Strategy:
+    """``curriculum`` with its ``[S]`` stages (fit v0 only when it was not measured, e.g.
+    progressive's ``hold_velocity="auto"``) resolved for this start: held when v0 starts from the
+    stage-0 estimate or a given value, fitted when it starts at zero. Without such stages it is
+    returned as it is. The estimate is deterministic, so a resume resolves them the same way."""
+    if not curriculum.has_velocity_rule(material):
+        return curriculum
+    log.info("v0 %s", "starts from a measurement, so the [S] stages hold it" if start.measured else
+             "starts at zero (no stage-0 estimate), so the [S] stages fit it")
+    return curriculum.with_velocity_start(start.measured)
 
 
 def velocity_held_after(stages: list[Stage]) -> Optional[int]:

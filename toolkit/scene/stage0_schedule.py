@@ -54,8 +54,8 @@ class Stage0Schedule(DictSettings):
         lambda_anchor: Weight of the silhouette anchor after the warm-up
             (:mod:`toolkit.scene.silhouette_anchor`; GIC: none): the projected mean of the
             Gaussians is drawn toward each mask's centroid, so a frame the deformation carried off
-            the object still has a gradient back. 0 (GIC, the tiny schedule) turns it off;
-            :meth:`full` uses 1.
+            the object still has a gradient back. 0 (GIC) turns it off; :meth:`full` and
+            :meth:`tiny` use 1.
         anchor_tolerance: The anchor's dead zone, as a fraction of the image size.
         densify_from, densify_until, densify_interval: Densify at iterations ``it`` with
             ``densify_from < it < densify_until`` and ``it % densify_interval == 0``.
@@ -160,7 +160,10 @@ class Stage0Schedule(DictSettings):
         iterations). The frames of the dynamic phase are introduced progressively over its first
         third (``frame_curriculum``): drawing far frames from the start made Adam overshoot their
         offsets in some runs until those frames left every view (1 run in 4 on the test scene),
-        after which no gradient could bring them back."""
+        after which no gradient could bring them back. The silhouette anchor is on
+        (``lambda_anchor`` 1, as in :meth:`full`): without it, a 64 px scene imaged as particle
+        discs with mask noise lost frames 2-6 that way even with the curriculum; with it, no
+        frame of 12 CPU scenes was lost (``docs/results/paper_size.md``)."""
         return cls(
             iterations=600,
             warmup=80,
@@ -179,6 +182,7 @@ class Stage0Schedule(DictSettings):
             opacity_reset_interval=100_000,
             sh_increase_interval=100_000,
             frame_curriculum=170,
+            lambda_anchor=FULL_LAMBDA_ANCHOR,
             densification=DensificationConfig(grad_threshold=1.5e-4, max_gaussians=2500),
             log_every=50,
         )
