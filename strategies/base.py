@@ -243,9 +243,7 @@ class Strategy:
         frames (at least :data:`FREE_FLIGHT_MIN_FRAMES`; that many when ``None``). The fit calls it
         with the stage-0 ballistic estimate's free-flight frames
         (:func:`toolkit.physics.initial_velocity.free_flight_frames`); this strategy is unchanged."""
-        out = copy.copy(self)
-        out.options = dict(self.options)
-        out._cache = {}
+        out = self._copy_for_clip()
         out._free_flight = (free_flight_frames,)
         return out
 
@@ -258,10 +256,15 @@ class Strategy:
         """A copy of this strategy whose ``[S]`` stages hold v0 (``measured``: v0 started from the
         stage-0 ballistic estimate or was given) or fit it (v0 started at zero, a guess). The fit
         calls it once v0's start is known; this strategy is unchanged."""
+        out = self._copy_for_clip()
+        out._velocity_measured = bool(measured)
+        return out
+
+    def _copy_for_clip(self) -> "Strategy":
+        """A copy with its own options and an empty stage cache, for a per-clip setting."""
         out = copy.copy(self)
         out.options = dict(self.options)
         out._cache = {}
-        out._velocity_measured = bool(measured)
         return out
 
     def total_iterations(self, material: str | None = None) -> int:

@@ -103,3 +103,23 @@ def test_module_holds_a_measured_v0_and_fits_one_that_starts_at_zero(tiny_input,
     again = InversePhysicsModule(tiny_input, curriculum=measured.hparams["curriculum"], sim=fit_sim(), renderer="warp",
                                  optimize_params=["E"], material_init="given")
     assert again.curriculum.describe("neo_hookean") == measured.curriculum.describe("neo_hookean")
+
+
+def test_a_checkpoint_from_before_the_rule_resumes_without_a_curriculum_warning(tiny_input, caplog):
+    """Checkpoints written before ``velocity_if_unmeasured`` existed lack the key in their stages;
+    resuming one with the same curriculum is not "a different curriculum", another one is."""
+    from toolkit.physics import InversePhysicsModule
+
+    m = InversePhysicsModule(tiny_input, curriculum="XAS:2@3,XASM:1", sim=fit_sim(), renderer="warp", optimize_params=["E"],
+                             material_init="given")
+    ckpt: dict = {}
+    m.on_save_checkpoint(ckpt)
+    for st in ckpt["projo4d"]["curriculum"]:
+        del st["velocity_if_unmeasured"]
+    with caplog.at_level(logging.WARNING, logger="toolkit.physics.module"):
+        m.on_load_checkpoint(ckpt)
+    assert not [r for r in caplog.records if "different curriculum" in r.getMessage()]
+    ckpt["projo4d"]["curriculum"][1]["groups"] = "XAM"
+    with caplog.at_level(logging.WARNING, logger="toolkit.physics.module"):
+        m.on_load_checkpoint(ckpt)
+    assert [r for r in caplog.records if "different curriculum" in r.getMessage()]

@@ -423,7 +423,9 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         self.material_search = state.get("material_search")
         self._sim = None
         saved = state.get("curriculum")
-        unnamed = lambda stages: [{k: v for k, v in d.items() if k != "name"} for d in stages]  # noqa: E731
+        # checkpoints from before a Stage field was added lack it: compare with its default
+        unnamed = lambda stages: [{"velocity_if_unmeasured": False, **{k: v for k, v in d.items() if k != "name"}}  # noqa: E731
+                                  for d in stages]
         if saved is not None and unnamed(saved) != unnamed(self.curriculum.describe(self.material.registry_name or None)):
             log.warning("the checkpoint was written with a different curriculum; continuing with the current one")
 
