@@ -153,9 +153,9 @@ class Stage:
         its name's ``[S]`` follows. Any other stage unchanged."""
         if not self.velocity_if_unmeasured:
             return self
-        groups = self.groups if measured else self.groups | {"S"}
-        resolved = replace(self, groups=groups, velocity_if_unmeasured=False, name="")
-        return replace(resolved, name=self.name.replace("[S]", "" if measured else "S")) if self.name != self.label() else resolved
+        derived = self.name == self.label()  # a derived name is derived again from the resolved groups
+        return replace(self, groups=self.groups if measured else self.groups | {"S"}, velocity_if_unmeasured=False,
+                       name="" if derived else self.name.replace("[S]", "" if measured else "S"))
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any, Optional, Union
 
 import pytorch_lightning as pl
@@ -36,7 +37,7 @@ from torch import nn
 
 from materials import Material, get_material
 from renderers import RENDERERS, get_renderer
-from strategies import Strategy, get_strategy
+from strategies import Stage, Strategy, get_strategy
 from strategies.base import GROUPS
 from toolkit.data.exclusion import EXCLUSION_META_KEY
 from toolkit.mpm import MPMSimulator, SimConfig
@@ -423,9 +424,10 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         self.material_search = state.get("material_search")
         self._sim = None
         saved = state.get("curriculum")
-        # checkpoints from before a Stage field was added lack it: compare with its default
-        unnamed = lambda stages: [{"velocity_if_unmeasured": False, **{k: v for k, v in d.items() if k != "name"}}  # noqa: E731
-                                  for d in stages]
+        # as Stages (a field a checkpoint predates takes its default), names aside
+        unnamed = lambda stages: [  # noqa: E731
+            (replace(Stage.from_dict({k: v for k, v in d.items() if k not in ("start", "end")}), name=""), d.get("start"), d.get("end"))
+            for d in stages]
         if saved is not None and unnamed(saved) != unnamed(self.curriculum.describe(self.material.registry_name or None)):
             log.warning("the checkpoint was written with a different curriculum; continuing with the current one")
 
