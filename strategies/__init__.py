@@ -2,7 +2,7 @@
 
 >>> from strategies import get_strategy
 >>> get_strategy("progressive").schedule_string("neo_hookean")
-'XAS:100@3/3x3,XASM:150/3x20'
+'XAS:100@3/3x3,XA[S]M:150/3x20'
 >>> get_strategy("XAS:100@3,XASM:150").total_iterations()
 250
 

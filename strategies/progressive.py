@@ -15,7 +15,8 @@ class Progressive(Strategy):
     """ProJo4D (Rho et al., TMLR 2026): grow the jointly optimized set of parameter groups.
 
     Stage 1 optimizes positions, appearance and the initial state (XAS) on the first frames, where
-    the motion is set by v0 alone; Stage 2 adds the material (XASM) on all training frames.
+    the motion is set by v0 alone; Stage 2 adds the material on all training frames (XASM in the
+    paper; here v0 stays at Stage 1's value when stage 0 measured it, see ``hold_velocity``).
 
     Options:
         stage1_iterations: default 100.
@@ -26,19 +27,18 @@ class Progressive(Strategy):
             schedule string ``@ff``). With ``hold_velocity`` it makes stage 1 fit v0 on every frame
             that determines it without the material, and stage 2 keep it.
         stage1_batch, stage2_batch: (cameras, frames) per iteration, default (3, 3) and (3, 20).
-        hold_velocity: keep v0 (and a learnt gravity) at Stage 1's value in Stage 2 (``XAM``
-            instead of ``XASM``), default False (the paper's). Stage 1 fits v0 on the frames before
-            contact. On nine 400 px scenes (round 19 of the paper-size benchmark, same stage 0 for
-            both arms) holding it made v0 7x closer (mean error 0.0158 -> 0.0023 m/s) and left the
-            material errors and the future CD where they were. On four 64 px CPU scenes it was not
-            better: stage 1's v0 from three small frames was up to 0.01-0.02 m/s off (100 or 30
-            stage-1 iterations), which stage 2 corrects. On five 400 px elastic and plasticine
-            scenes (round 21) v0 was closer on 4 of 5, plasticine's material and future better,
-            elastic's a wash. ``"auto"``: hold v0 when it starts from a measurement (the stage-0
-            ballistic estimate, or a given ``v0_init``) and fit it in Stage 2 as the paper does when
-            it starts at zero (``XA[S]M``, set when the fit starts). On 64 px scenes imaged
-            differently, stage 0 lost one body after frame 1, v0 started at zero, and holding it
-            left it 0.12 m/s off; ``"auto"`` fits it there.
+        hold_velocity: whether Stage 2 keeps v0 (and a learnt gravity) at Stage 1's value
+            (``XAM`` instead of the paper's ``XASM``). Default ``"auto"`` (``XA[S]M``, set when the
+            fit starts): hold v0 when it starts from a measurement (the stage-0 ballistic estimate,
+            or a given ``v0_init``), fit it in Stage 2 when it starts at zero (stage 0 lost the
+            body, or ``"zero"`` was asked for). ``True`` always holds, ``False`` is the paper's
+            curriculum. Measured (``docs/results/paper_size.md``): on 400 px clips holding v0 made
+            it closer on 19 of 22 scene fits (rounds 19, 21-23; mean error 0.016 -> 0.002 m/s on
+            the fluids), left the material errors where they were, lowered the future CD where a
+            free v0 ran away (newtonian/003: 50.3 -> 3.0); with it in place of the free fits the
+            paper-table count went 7 -> 12 of 27. On 64 px CPU clips it helped the elastic and
+            plasticine scenes (mean future CD 0.205 against 0.222) and cost the fluids a little
+            (7 % higher mean future CD on six scenes), where three small frames leave v0 0.01-0.02 m/s open.
     """
 
     option_defaults = {
@@ -47,7 +47,7 @@ class Progressive(Strategy):
         "early_frames": EARLY_FRAMES,
         "stage1_batch": STAGE1_BATCH,
         "stage2_batch": STAGE2_BATCH,
-        "hold_velocity": False,
+        "hold_velocity": "auto",
     }
 
     def __init__(
@@ -57,7 +57,7 @@ class Progressive(Strategy):
         early_frames: int | str = EARLY_FRAMES,
         stage1_batch: tuple[int, int] = STAGE1_BATCH,
         stage2_batch: tuple[int, int] = STAGE2_BATCH,
-        hold_velocity: bool | str = False,
+        hold_velocity: bool | str = "auto",
     ):
         if not isinstance(hold_velocity, bool) and hold_velocity != "auto":
             raise ValueError(f"progressive: hold_velocity must be true, false or 'auto' (hold v0 when it starts from a "

@@ -21,10 +21,17 @@ def _active(strategy, material):
 @pytest.mark.parametrize("material,stage2", [("neo_hookean", 150), ("sand", 150), ("newtonian", 250),
                                               ("non_newtonian", 350), ("plasticine", 300)])
 def test_progressive_is_projo4d(material, stage2):
-    steps = _active(get_strategy("progressive"), material)
+    paper = get_strategy("progressive", hold_velocity=False)
+    steps = _active(paper, material)
     assert len(steps) == 100 + stage2  # paper appendix: Stage 1 = 100, Stage 2 per material
     assert steps[:100] == [("XAS", 3, (3, 3), ("image", "geometry"))] * 100
     assert steps[100:] == [("XASM", None, (3, 20), ("image", "geometry"))] * stage2
+    # the default differs from the paper in one thing: stage 2 holds v0 when stage 0 measured it
+    default = get_strategy("progressive")
+    assert default.options["hold_velocity"] == "auto" and default.has_velocity_rule(material)
+    assert default.schedule_string(material) == f"XAS:100@3/3x3,XA[S]M:{stage2}/3x20"
+    assert _active(default.with_velocity_start(False), material) == steps
+    assert _active(default.with_velocity_start(True), material) == _active(get_strategy("progressive", hold_velocity=True), material)
 
 
 def test_progressive_can_hold_v0_after_stage_1():

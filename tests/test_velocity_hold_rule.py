@@ -33,7 +33,8 @@ def test_schedule_string_round_trip_and_resolution():
     held = auto.with_velocity_start(True)
     free = auto.with_velocity_start(False)
     assert held.schedule_string("neo_hookean") == get_strategy("progressive", hold_velocity=True).schedule_string("neo_hookean")
-    assert free.schedule_string("neo_hookean") == get_strategy("progressive").schedule_string("neo_hookean")
+    assert free.schedule_string("neo_hookean") == get_strategy("progressive", hold_velocity=False).schedule_string("neo_hookean")
+    assert get_strategy("progressive").schedule_string("neo_hookean") == auto.schedule_string("neo_hookean")  # the default
     assert [s.name for s in held.stages("sand")] == ["stage1:XAS", "stage2:XAM"]
     assert [s.name for s in free.stages("sand")] == ["stage1:XAS", "stage2:XASM"]
     assert auto.has_velocity_rule("sand") and not held.has_velocity_rule("sand") and not free.has_velocity_rule("sand")

@@ -27,7 +27,7 @@ DEMO_SCENE = dict(
 )
 #: the run settings (toolkit.pipeline.RunSettings fields; mirrors configs/demo.yaml)
 DEMO_RUN = dict(
-    cameras="sparse", stage0="tiny", material="neo_hookean", curriculum="XAS:25@3/3x3,XASM:40/3x7",
+    cameras="sparse", stage0="tiny", material="neo_hookean", curriculum="XAS:25@3/3x3,XA[S]M:40/3x7",
     sim={"dx": 0.02, "substeps": 40, "auto_dt_halving": True},
 )
 

@@ -134,7 +134,8 @@ def warn_if_zero_start_is_held(start: StartingVelocity, stages: list[Stage]) -> 
     st = stages[k]
     msg = (f"v0 starts at zero (stage 0 gave fewer than 3 frames before contact to estimate it from) and is fitted "
            f"only up to stage {k + 1} ({st.name}, {st.iterations} iterations); the later stages keep it where that "
-           "stage leaves it. Give v0 (v0_init), or fit it in the later stages too (progressive without hold_velocity)")
+           "stage leaves it. Give v0 (v0_init), or fit it in the later stages too (progressive's default hold_velocity='auto' "
+           "does when v0 starts at zero)")
     log.warning(msg)
     return msg
 
