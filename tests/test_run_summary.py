@@ -64,3 +64,22 @@ def test_the_starting_v0_and_its_free_flight_frames_are_kept():
             "(6 frames; ground contact at frame 6)") in table
     plain = run_summary(_module({}, {}), {}, {}, [])
     assert plain["v0_estimate"] is None and "v0 started" not in format_summary(plain)
+
+
+def test_where_v0_started_is_said_when_it_was_not_the_estimate():
+    """Without a stage-0 estimate the table says why v0 started at zero and how a ``[S]`` stage
+    resolved (the config's ``XA[S]M`` prints as the ``XASM`` it ran); with one, the estimate's line
+    says that v0 was held."""
+    module = _module({}, {})
+    module.v0_origin = {"source": "no estimate", "rule": "fitted"}
+    table = format_summary(run_summary(module, {}, {}, []))
+    assert ("v0 started at zero: stage 0 gave fewer than 3 usable frames before contact for a ballistic estimate; "
+            "the [S] stages fitted it\n") in table
+    module.v0_origin = {"source": "given", "rule": None}
+    assert "v0 started at the given v0_init\n" in format_summary(run_summary(module, {}, {}, []))
+    module.v0_origin = {"source": "estimate", "rule": "held"}
+    module.v0_estimate = {"v0": [-0.743, -0.219, -0.935], "x0": [0.0, 0.3, 0.0], "frames": [0, 1, 2, 3], "method": "ballistic",
+                          "rms_residual": 0.002, "stop_reason": "ground contact at frame 4"}
+    summary = run_summary(module, {}, {}, [])
+    assert summary["v0_origin"] == {"source": "estimate", "rule": "held"}
+    assert "(4 frames; ground contact at frame 4); the [S] stages held it at stage 1's value" in format_summary(summary)

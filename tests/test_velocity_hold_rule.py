@@ -90,6 +90,11 @@ def test_module_holds_a_measured_v0_and_fits_one_that_starts_at_zero(tiny_input,
     assert zero.stages[1].groups == frozenset("XASM") and velocity_held_after(zero.stages) is None
     asked_zero = InversePhysicsModule(tiny_input, v0_init="zero", **kw)
     assert asked_zero.stages[1].groups == frozenset("XASM")  # zero is a guess, not a measurement
+    # where v0 started and how [S] resolved, for summary.json and the closing table
+    assert [m.v0_origin for m in (measured, given, zero, asked_zero)] == [
+        {"source": "estimate", "rule": "held"}, {"source": "given", "rule": "held"},
+        {"source": "no estimate", "rule": "fitted"}, {"source": "zero", "rule": "fitted"}]
+    assert InversePhysicsModule(lost, **{**kw, "curriculum": "XAS:1@3,XASM:2"}).v0_origin == {"source": "no estimate", "rule": None}
 
     def v0_through_stage2(m, out):
         fit_physics(m, out, checkpoint_every=0, accelerator="cpu", progress=False)

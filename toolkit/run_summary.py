@@ -52,6 +52,8 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
         "stage0_coverage": module.input.meta.get("stage0_coverage"),  # frames where stage 0 lost the object
         # the stage-0 ballistic estimate v0 started from: its free-flight frames and why it stopped there
         "v0_estimate": getattr(module, "v0_estimate", None),
+        # where v0 started (estimate, given, zero, no estimate) and how a [S] stage resolved
+        "v0_origin": getattr(module, "v0_origin", None),
     }
 
 
@@ -71,7 +73,14 @@ def format_summary(summary: dict) -> str:
     if start and start.get("frames"):
         from toolkit.physics.initial_velocity import describe_estimate
 
-        lines.append("v0 started at the " + describe_estimate(start))
+        held = (summary.get("v0_origin") or {}).get("rule") == "held"
+        lines.append("v0 started at the " + describe_estimate(start) + ("; the [S] stages held it at stage 1's value" if held else ""))
+    elif summary.get("v0_origin"):
+        from toolkit.physics.starting_state import describe_start
+
+        said = describe_start(summary["v0_origin"])
+        if said:
+            lines.append(said)
     fut = summary["future"]
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "

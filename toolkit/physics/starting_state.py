@@ -20,7 +20,7 @@ from strategies.base import FREE_FLIGHT_MIN_FRAMES, free_flight_window
 from toolkit.mpm import SimConfig
 from toolkit.physics.inputs import PhysicsInput
 
-__all__ = ["StartingVelocity", "free_flight_curriculum", "initial_v0", "velocity_start_curriculum", "velocity_held_after",
+__all__ = ["StartingVelocity", "describe_start", "free_flight_curriculum", "initial_v0", "velocity_start_curriculum", "velocity_held_after",
            "warn_if_zero_start_is_held", "surface_particles", "cosine_with_warmup", "StepStream"]
 
 log = logging.getLogger(__name__)
@@ -46,6 +46,16 @@ class StartingVelocity:
         """Whether v0 starts from a measurement: the stage-0 ballistic estimate or a given v0 (not
         zero for lack of an estimate, nor ``"zero"``)."""
         return self.estimate is not None or self.hparam is None
+
+    @property
+    def source(self) -> str:
+        """Where v0 starts: ``"estimate"`` (stage-0 ballistic fit), ``"given"`` (``v0_init``),
+        ``"zero"`` (asked for) or ``"no estimate"`` (zero, stage 0 gave too few free-flight frames)."""
+        if self.estimate is not None:
+            return "estimate"
+        if self.hparam is None:
+            return "given"
+        return "no estimate" if self.hparam == (None,) else "zero"
 
 
 def initial_v0(v0_init: Union[None, str, list[float]], inp: PhysicsInput, cfg: SimConfig) -> StartingVelocity:
@@ -174,3 +184,20 @@ class StepStream(torch.utils.data.IterableDataset):
     def __iter__(self):
         while True:
             yield 0
+
+
+def describe_start(start: dict) -> Optional[str]:
+    """One line on where v0 started when it was not the stage-0 estimate (that one has its own
+    line, :func:`toolkit.physics.initial_velocity.describe_estimate`), and how a ``[S]`` stage
+    resolved; ``start`` is a module's ``v0_origin`` record (``{"source": ..., "rule": ...}``).
+    ``None`` when there is nothing more to say."""
+    source, rule = start.get("source"), start.get("rule")
+    said = {"no estimate": "v0 started at zero: stage 0 gave fewer than 3 usable frames before contact for a ballistic "
+                           "estimate",
+            "zero": "v0 started at zero, as asked (v0_init 'zero')",
+            "given": "v0 started at the given v0_init"}.get(source)
+    if rule == "fitted":
+        said = (said or "v0 started unmeasured") + "; the [S] stages fitted it"
+    elif rule == "held" and said:
+        said += "; the [S] stages held it at stage 1's value"
+    return said
