@@ -69,18 +69,11 @@ def format_summary(summary: dict) -> str:
         label = r.get("label") or "-"
         label += f" ({r['note']})" if r.get("note") else ""
         lines.append(f"{r['parameter']:<18}{fmt(est):>14}{fmt(tru):>14}  {format_interval(r.get('low'), r.get('high')):<24}{label}")
-    start = summary.get("v0_estimate")
-    if start and start.get("frames"):
-        from toolkit.physics.initial_velocity import describe_estimate
+    from toolkit.physics.starting_state import describe_start
 
-        held = (summary.get("v0_origin") or {}).get("rule") == "held"
-        lines.append("v0 started at the " + describe_estimate(start) + ("; the [S] stages held it at stage 1's value" if held else ""))
-    elif summary.get("v0_origin"):
-        from toolkit.physics.starting_state import describe_start
-
-        said = describe_start(summary["v0_origin"])
-        if said:
-            lines.append(said)
+    said = describe_start(summary.get("v0_origin"), summary.get("v0_estimate"))
+    if said:
+        lines.append(said)
     fut = summary["future"]
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "

@@ -229,10 +229,8 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         self.v0_estimate: Optional[dict] = start.estimate
         # a stage window "@ff" becomes this clip's frames before ground contact (a resume sets the same)
         self.curriculum = free_flight_curriculum(self.curriculum, self.material.registry_name or None, self.v0_estimate, inp, cfg)
-        rule = self.curriculum.has_velocity_rule(self.material.registry_name or None)
-        self.curriculum = velocity_start_curriculum(self.curriculum, self.material.registry_name or None, start)
         #: where v0 started, and how a ``[S]`` stage resolved (``"held"``/``"fitted"``; None without one)
-        self.v0_origin = {"source": start.source, "rule": ("held" if start.measured else "fitted") if rule else None}
+        self.curriculum, self.v0_origin = velocity_start_curriculum(self.curriculum, self.material.registry_name or None, start)
         self.stages = self.curriculum.stages(self.material.registry_name or None)
         warn_if_zero_start_is_held(start, self.stages)
         self.v0 = nn.Parameter(torch.tensor(start.v0, dtype=torch.float32))

@@ -108,16 +108,23 @@ def free_flight_curriculum(curriculum: Strategy, material: Optional[str], estima
     return curriculum.with_free_flight(n)
 
 
-def velocity_start_curriculum(curriculum: Strategy, material: Optional[str], start: StartingVelocity) -> Strategy:
+def velocity_start_curriculum(curriculum: Strategy, material: Optional[str],
+                              start: StartingVelocity) -> tuple[Strategy, dict]:
     """``curriculum`` with its ``[S]`` stages (fit v0 only when it was not measured, e.g.
     progressive's ``hold_velocity="auto"``) resolved for this start: held when v0 starts from the
     stage-0 estimate or a given value, fitted when it starts at zero. Without such stages it is
-    returned as it is. The estimate is deterministic, so a resume resolves them the same way."""
+    returned as it is. The estimate is deterministic, so a resume resolves them the same way.
+
+    Returns:
+        The resolved curriculum, and where v0 started with how the ``[S]`` stages went
+        (``{"source": start.source, "rule": "held" | "fitted" | None}``; None without such stages),
+        the module's ``v0_origin``."""
     if not curriculum.has_velocity_rule(material):
-        return curriculum
+        return curriculum, {"source": start.source, "rule": None}
     log.info("v0 %s", "starts from a measurement, so the [S] stages hold it" if start.measured else
              "starts at zero (no stage-0 estimate), so the [S] stages fit it")
-    return curriculum.with_velocity_start(start.measured)
+    origin = {"source": start.source, "rule": "held" if start.measured else "fitted"}
+    return curriculum.with_velocity_start(start.measured), origin
 
 
 def velocity_held_after(stages: list[Stage]) -> Optional[int]:
@@ -186,16 +193,28 @@ class StepStream(torch.utils.data.IterableDataset):
             yield 0
 
 
-def describe_start(start: dict) -> Optional[str]:
-    """One line on where v0 started when it was not the stage-0 estimate (that one has its own
-    line, :func:`toolkit.physics.initial_velocity.describe_estimate`), and how a ``[S]`` stage
-    resolved; ``start`` is a module's ``v0_origin`` record (``{"source": ..., "rule": ...}``).
-    ``None`` when there is nothing more to say."""
-    source, rule = start.get("source"), start.get("rule")
-    said = {"no estimate": "v0 started at zero: stage 0 gave fewer than 3 usable frames before contact for a ballistic "
-                           "estimate",
-            "zero": "v0 started at zero, as asked (v0_init 'zero')",
-            "given": "v0 started at the given v0_init"}.get(source)
+def describe_start(origin: Optional[dict], estimate: Optional[dict] = None) -> Optional[str]:
+    """One line on where v0 started and how a ``[S]`` stage resolved, for the closing table.
+
+    Args:
+        origin: a module's ``v0_origin`` (``{"source": ..., "rule": ...}``; ``None`` in a summary
+            written before it existed).
+        estimate: the stage-0 ballistic estimate's record (``V0Estimate.to_dict()``) v0 started
+            from, if any; its line is :func:`toolkit.physics.initial_velocity.describe_estimate`'s.
+
+    Returns:
+        The line, or ``None`` when there is nothing to say (v0 given, or no record, and no rule).
+    """
+    source, rule = (origin or {}).get("source"), (origin or {}).get("rule")
+    if estimate and estimate.get("frames"):
+        from toolkit.physics.initial_velocity import describe_estimate
+
+        said = "v0 started at the " + describe_estimate(estimate)
+    else:
+        said = {"no estimate": "v0 started at zero: stage 0 gave fewer than 3 usable frames before contact for a "
+                               "ballistic estimate",
+                "zero": "v0 started at zero, as asked (v0_init 'zero')",
+                "given": "v0 started at the given v0_init"}.get(source)
     if rule == "fitted":
         said = (said or "v0 started unmeasured") + "; the [S] stages fitted it"
     elif rule == "held" and said:
