@@ -5,6 +5,7 @@ the MAP prior step and its guard on the fit's own loss."""
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 import torch
@@ -90,22 +91,63 @@ def _open_sides(module, params, frames, n, theta, sds, q, curvature, s2) -> tupl
     return found, rollouts
 
 
+def _fit_loss_setup(module):
+    """The stage, cameras and frames the fit's own loss is probed on: the last stage that optimizes
+    the material (else the last stage), every training camera, every fitted frame after frame 0."""
+    stages = list(module.stages)
+    stage = next((s for s in reversed(stages) if "M" in s.groups), stages[-1])
+    return stage, list(module.input.train_cameras), list(range(1, module.input.n_train))
+
+
+def _relative_rise(losses: list[float]) -> float:
+    rise = (losses[1] - losses[0]) / max(abs(losses[0]), 1e-30)
+    return rise if math.isfinite(rise) else math.inf
+
+
 def _fit_loss_rise(module, params, n: int, before: np.ndarray, after: np.ndarray) -> tuple[float, int]:
     """Relative change of the fit's own loss (:meth:`~toolkit.physics.InversePhysicsModule.losses`
     of the last stage that optimizes the material, else the last stage: image and geometric terms,
     every training camera, every fitted frame after frame 0) from ``before`` to ``after`` (raw
     parameters); the parameters are left at ``after``. Returns ``(rise, rollouts)``."""
-    stages = list(module.stages)
-    stage = next((s for s in reversed(stages) if "M" in s.groups), stages[-1])
-    cams = list(module.input.train_cameras)
-    fit_frames = list(range(1, module.input.n_train))
+    stage, cams, fit_frames = _fit_loss_setup(module)
     losses = []
     for th in (before, after):
         for p, v in zip(params, th):
             p.set(float(v))
         losses.append(module.probe_losses(_simulate(module, max([n, *fit_frames])), stage, cams, fit_frames)["total"])
-    rise = (losses[1] - losses[0]) / max(abs(losses[0]), 1e-30)
-    return (rise if math.isfinite(rise) else math.inf), 2
+    return _relative_rise(losses), 2
+
+
+@torch.no_grad()
+def _fine_fit_loss_rise(module, params, before: np.ndarray, after: np.ndarray) -> tuple[Optional[float], int]:
+    """:func:`_fit_loss_rise` with both states simulated on a grid of half the fit's spacing
+    (:func:`toolkit.physics.grid_check.grid_shift`: each fit particle split into 8, its position the
+    mean of its children, so the fit's Gaussians are rendered where the finer grid moves them).
+
+    A rise the fit's grid shows but the finer one does not is the coarse grid's, not the data's.
+    Returns ``(rise, rollouts)``; ``rise`` is None when the fine grid does not fit in memory or its
+    rollout fails. The parameters are left at ``after``."""
+    from toolkit.mpm.config import SimulationError
+    from toolkit.physics.grid_check import grid_shift
+
+    stage, cams, fit_frames = _fit_loss_setup(module)
+    sim = module.simulator
+    x0 = (module.particles0 + module.particle_offset).detach()
+    losses, rollouts = [], 0
+    for th in (before, after):
+        for p, v in zip(params, th):
+            p.set(float(v))
+        args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
+        try:
+            with module.substeps_unlogged(), sim.substep_plan_restored():
+                shift = grid_shift(sim, x0, *args, n_frames=max(fit_frames))
+        except (SimulationError, RuntimeError):  # the fine grid does not fit, or its rollout fails
+            for p, v in zip(params, after):
+                p.set(float(v))
+            return None, rollouts + 2
+        rollouts += 2
+        losses.append(module.probe_losses(shift["fine_positions"], stage, cams, fit_frames)["total"])
+    return _relative_rise(losses), rollouts
 
 
 def _map_step(module, params, frames, n, theta, grad_data, s2, H, prior_mean, prior_prec, free: list[int]):
