@@ -155,6 +155,8 @@ def test_fine_guard_keeps_the_prior_step_where_only_the_coarse_grid_objects(tmp_
     off = estimate_uncertainty(m).to_dict()
     assert off["prior_step"]["taken"] is False and "fine_fit_loss_rise" not in off["prior_step"]
     assert math.log10(off["parameters"]["E"]["value"]) == pytest.approx(math.log10(TRUTH["E"]) - 0.3, abs=1e-3)
+    with pytest.raises(TypeError, match="fine_guard must be True or False, got 'yes'"):
+        estimate_uncertainty(m, fine_guard="yes")  # refused before any rollout
 
 
 def test_contact_detection_and_projection():

@@ -39,7 +39,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from toolkit.mpm import MPMSimulator
     from toolkit.physics.module import InversePhysicsModule
 
-__all__ = ["subdivide", "grid_shift", "grid_convergence", "check_estimate", "state_key", "format_grid_check", "annotate_grid",
+__all__ = ["subdivide", "grid_shift", "grid_convergence", "check_estimate", "shift_of_estimate", "state_key", "format_grid_check", "annotate_grid",
            "GRID_NOTE"]
 
 #: added to the note of each material parameter when the grid check fails
@@ -137,6 +137,19 @@ def grid_convergence(module: "InversePhysicsModule", n_frames: Optional[int] = N
 
 
 @torch.no_grad()
+def shift_of_estimate(module: "InversePhysicsModule", n_frames: int) -> dict:
+    """:func:`grid_shift` of the module's current estimate (particles, v0, material, gravity,
+    effects) over frames 0..``n_frames``, without substep log lines and with the simulator's
+    substep plan restored afterwards. Raises what the rollouts raise (:class:`SimulationError`,
+    or a RuntimeError such as a device out of memory)."""
+    x0 = (module.particles0 + module.particle_offset).detach()
+    args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
+    sim = module.simulator
+    with module.substeps_unlogged(), sim.substep_plan_restored():
+        return grid_shift(sim, x0, *args, n_frames=n_frames)
+
+
+@torch.no_grad()
 def check_estimate(module: "InversePhysicsModule", n_frames: Optional[int] = None) -> tuple[dict, Optional[dict]]:
     """Simulate the module's current estimate on its grid and on one of half the spacing, and judge
     the shift against the fit's residual (training frames 1..``n_frames``, default all).
@@ -149,12 +162,8 @@ def check_estimate(module: "InversePhysicsModule", n_frames: Optional[int] = Non
     """
     t = time.perf_counter()
     n_frames = int(n_frames if n_frames is not None else module.input.n_train - 1)
-    x0 = (module.particles0 + module.particle_offset).detach()
-    args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
-    sim = module.simulator
     try:
-        with module.substeps_unlogged(), sim.substep_plan_restored():
-            shift = grid_shift(sim, x0, *args, n_frames=n_frames)
+        shift = shift_of_estimate(module, n_frames)
     except (SimulationError, RuntimeError) as err:  # GridTooLargeError, or a device out of memory: the fine grid does not fit
         return {"skipped": f"{type(err).__name__}: {str(err)[:300]}", "seconds": time.perf_counter() - t}, None
     residual = surface_residual(module, shift["positions"], range(1, n_frames + 1))

@@ -273,6 +273,8 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
 
     if not 0 < level < 1:
         raise ValueError(f"estimate_uncertainty: level must be in (0, 1), got {level!r}")
+    if not isinstance(fine_guard, bool):
+        raise TypeError(f"estimate_uncertainty: fine_guard must be True or False, got {fine_guard!r}")
     frames = _frames(module)
     if not frames:
         raise ValueError(f"estimate_uncertainty: no fitted frame after frame 0 has a target surface "

@@ -121,26 +121,22 @@ def _fit_loss_rise(module, params, n: int, before: np.ndarray, after: np.ndarray
 @torch.no_grad()
 def _fine_fit_loss_rise(module, params, before: np.ndarray, after: np.ndarray) -> tuple[Optional[float], int]:
     """:func:`_fit_loss_rise` with both states simulated on a grid of half the fit's spacing
-    (:func:`toolkit.physics.grid_check.grid_shift`: each fit particle split into 8, its position the
+    (:func:`toolkit.physics.grid_check.shift_of_estimate`: each fit particle split into 8, its position the
     mean of its children, so the fit's Gaussians are rendered where the finer grid moves them).
 
     A rise the fit's grid shows but the finer one does not is the coarse grid's, not the data's.
     Returns ``(rise, rollouts)``; ``rise`` is None when the fine grid does not fit in memory or its
     rollout fails. The parameters are left at ``after``."""
     from toolkit.mpm.config import SimulationError
-    from toolkit.physics.grid_check import grid_shift
+    from toolkit.physics.grid_check import shift_of_estimate
 
     stage, cams, fit_frames = _fit_loss_setup(module)
-    sim = module.simulator
-    x0 = (module.particles0 + module.particle_offset).detach()
     losses, rollouts = [], 0
     for th in (before, after):
         for p, v in zip(params, th):
             p.set(float(v))
-        args = (module.v0.detach(), module.material_params().detach(), module.gravity.detach(), module.effect_params.detach())
         try:
-            with module.substeps_unlogged(), sim.substep_plan_restored():
-                shift = grid_shift(sim, x0, *args, n_frames=max(fit_frames))
+            shift = shift_of_estimate(module, max(fit_frames))
         except (SimulationError, RuntimeError):  # the fine grid does not fit, or its rollout fails
             for p, v in zip(params, after):
                 p.set(float(v))
