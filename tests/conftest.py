@@ -17,6 +17,21 @@ def available_devices() -> list[str]:
 DEVICES = available_devices()
 
 
+def pytest_configure(config):  # noqa: D103
+    # An xdist worker takes its share of the cores for torch's intra-op pool: by default each of
+    # N workers would start one thread per core, N times more than there are cores (measured 10 %
+    # slower on CI's 2 cores with 2 workers). Subprocesses set their own (toolkit.threads).
+    import os
+
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if os.environ.get("PYTEST_XDIST_WORKER") and workers > 1:
+        import torch
+
+        from toolkit.threads import available_cores
+
+        torch.set_num_threads(max(1, available_cores() // workers))
+
+
 @pytest.fixture(params=DEVICES)
 def device(request) -> str:
     """Every test that takes ``device`` runs once per device present (cpu, and cuda:0 if any)."""

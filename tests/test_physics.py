@@ -283,3 +283,32 @@ def test_a_start_outside_the_fit_range_is_refused(tiny_input):
     _module(tiny_input, "S:1", initial_params={"E": 1e4, "nu": -0.2})  # nu not optimized: no range applies
     with pytest.raises(ValueError, match=r"fit range \[-2, 0.4\] must lie inside the valid range \[-0.99, 0.49\]"):
         _module(tiny_input, "S:1", fit_ranges={"nu": [-2, 0.4]})
+
+
+def test_body_shift_translates_the_starting_body(tiny_input):
+    """``body_shift`` starts the particles' and Gaussians' offsets at a rigid translation: frame 0
+    is the input's body moved by it. A shift of one whole grid cell along the ground moves the
+    whole rollout by the shift (the grid stays in the world, so every particle keeps its cell
+    weights), while a lift of half a cell changes when the body meets the ground, so the rollout
+    is no longer the unshifted one plus the lift. Bad values are refused before any work."""
+    base = _module(tiny_input, "S:1")
+    dx = base.sim_config.dx
+    moved = _module(tiny_input, "S:1", body_shift=[dx, 0.0, 0.0])
+    shift = torch.tensor([dx, 0.0, 0.0])
+    assert torch.equal(moved.particle_offset.detach(), torch.zeros_like(moved.particles0) + shift)
+    assert torch.equal(moved.gaussian_offset.detach(), torch.zeros_like(moved.gaussian_means0) + shift)
+    assert moved.hparams["body_shift"] == [dx, 0.0, 0.0]
+    with torch.no_grad():
+        ours = base.predict_trajectory()["positions"]
+        theirs = moved.predict_trajectory()["positions"]
+    assert torch.allclose(theirs[0], ours[0] + shift, atol=1e-6)
+    assert float((theirs - shift - ours).abs().max()) < 1e-4
+    lifted = _module(tiny_input, "S:1", body_shift=[0.0, 0.5 * dx, 0.0])
+    with torch.no_grad():
+        up = lifted.predict_trajectory()["positions"]
+    lift = torch.tensor([0.0, 0.5 * dx, 0.0])
+    assert torch.allclose(up[0], ours[0] + lift, atol=1e-6)
+    assert float((up - lift - ours).abs().max()) > 1e-3
+    for bad in ([0.1, 0.2], ["a", 0, 0], [0.0, float("nan"), 0.0], 0.1):
+        with pytest.raises(ValueError, match="body_shift must be 3 finite numbers"):
+            _module(tiny_input, "S:1", body_shift=bad)

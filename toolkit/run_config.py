@@ -37,7 +37,7 @@ RUN_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_pa
                   "lambda_geometry", "learning_rates", "renderer", "seed", "optimize_gravity")
 #: the other InversePhysicsModule arguments, carried in ``RunSettings.model_options``
 MODULE_OPTIONS = ("effects", "v0_init", "material_init", "lambda_image", "ssim_weight", "warmup_fraction",
-                  "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges")
+                  "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges", "body_shift")
 #: ``trainer:`` keys ``projo4d run`` accepts and the RunSettings field each sets (None: accepted, not used)
 TRAINER_KEYS = {"accelerator": "device", "default_root_dir": None}
 #: Lightning accelerator -> RunSettings.device
@@ -161,6 +161,11 @@ def check_model_options(options: Any) -> None:
     if v0 is not None and v0 not in ("auto", "zero") and not (isinstance(v0, (list, tuple)) and len(v0) == 3 and all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in v0)):
         raise SettingsError("model_options.v0_init", v0, "expected 3 finite numbers (m/s, canonical frame), 'auto' or 'zero'")
+    shift = options.get("body_shift")
+    if shift is not None and not (isinstance(shift, (list, tuple)) and len(shift) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in shift)):
+        raise SettingsError("model_options.body_shift", shift,
+                            "expected 3 finite numbers [dx, dy, dz] (m): a rigid translation of the starting body")
     if options.get("material_init", "search") not in ("search", "given"):
         raise SettingsError("model_options.material_init", options["material_init"],
                             "expected 'search' (coarse search before gradient descent) or 'given' (start at the guesses)")

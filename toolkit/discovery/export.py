@@ -110,9 +110,12 @@ def config_of(refit: Refit, verdict: str = "") -> Optional[dict]:
 and loss weights;
     ``run:`` the fitting cameras and training frames. ``projo4d run --config`` replays the whole
     pipeline with it (stage 0 makes the geometry again), ``projo4d fit --config`` the physics
-    stages on a run's ``physics_input.pt``. Not carried: the refit's rigid shift of the body
-    (``shift``, metres; the geometry comes from the run) and any ``comment`` (``verdict`` is
-    returned under the key ``_comment`` for the YAML header and removed before writing).
+    stages on a run's ``physics_input.pt``. The refit's rigid shift of the body (``shift``,
+    metres) is carried as ``body_shift`` (where it is not zero), so the replayed model starts
+    where the refit's did and meets the ground when it did. Not carried: position offsets the
+    base fit gave single particles (the geometry comes from the run) and any ``comment``
+    (``verdict`` is returned under the key ``_comment`` for the YAML header and removed before
+    writing).
     """
     import dataclasses
 
@@ -137,6 +140,9 @@ and loss weights;
              "sim": sim, "lambda_geometry": float(m.lambda_geometry), "optimize_gravity": bool(m.optimize_gravity),
              "effects": effects, "v0_init": [float(v) for v in new.v0.detach().cpu().tolist()],
              "ssim_weight": float(m.ssim_weight)}
+    shift = [float(v) for v in refit.lib.physical(refit.q)["shift"]]
+    if any(shift):
+        model["body_shift"] = shift
     if hp.get("material_options"):
         model["material_options"] = dict(hp["material_options"])
     if hp.get("learning_rates"):

@@ -11,7 +11,9 @@ of candidates is a subset of free parameters of the same compiled kernels.
 
 Parameters live in a flat ``float64`` vector ``q`` (numpy) with names (:attr:`LibraryModel.names`):
 
-* ``v0.x|y|z`` (m/s), ``mat.<name>`` (raw material parameter), ``shift.x|y|z`` (m),
+* ``v0.x|y|z`` (m/s; for a body resting on a non-separating ground its component along the
+  ground normal is held at zero, group ``held``, as the module holds it), ``mat.<name>`` (raw
+  material parameter), ``shift.x|y|z`` (m),
   ``effect<i>.<param>`` (an effect of the base model), ``gravity.x|y|z`` (with
   ``optimize_gravity``);
 * ``<candidate>.<strength>`` for every candidate (``camera_pose.c<k>.x|y|z`` per fitted camera).
@@ -60,7 +62,7 @@ class ParamInfo:
 
     Attributes:
         name: ``v0.x``, ``mat.E``, ``ground_friction.mu``, ...
-        group: ``base`` or the candidate's name.
+        group: ``base``, the candidate's name, or ``held`` (kept at its value, never refitted).
         step: finite-difference step (and scaling unit), parameter units.
         low, high: bounds.
         units: for reports.
@@ -134,8 +136,13 @@ class LibraryModel:
             values.append(float(value))
 
         v0 = module.v0.detach().cpu().double().numpy()
+        #: the ground normal when the body starts resting on a non-separating ground: v0 has no
+        #: component along it, as in the module (:mod:`toolkit.physics.contact`), and that
+        #: component is held (group ``held``) instead of refitted
+        self.contact_normal = module.contact_normal
         for i, a in enumerate("xyz"):
-            add(f"v0.{a}", "base", 0.02, v0[i], units="m/s")
+            held = self.contact_normal is not None and self.contact_normal[i] != 0.0
+            add(f"v0.{a}", "held" if held else "base", 0.02, 0.0 if held else v0[i], units="m/s")
         raw = self._module_raw()
         self._mat_names = [n for n in module.optimized_material]
         for n in self._mat_names:
@@ -266,6 +273,15 @@ class LibraryModel:
             return torch.tensor(default, dtype=torch.float64)
         return qt[i]
 
+    def _v0(self, qt: torch.Tensor) -> torch.Tensor:
+        """(3,) initial velocity (m/s, float32 on the device), without its component along the
+        ground normal for a body resting on a non-separating ground (the module's rule)."""
+        v0 = torch.stack([qt[self.index_of[f"v0.{a}"]] for a in "xyz"]).float().to(self.device)
+        if self.contact_normal is not None:
+            n = torch.tensor(self.contact_normal, dtype=v0.dtype, device=v0.device)
+            v0 = v0 - (v0 @ n) * n
+        return v0
+
     def material_tensor(self, qt: torch.Tensor) -> torch.Tensor:
         """(P,) or (N, P) physical parameters of the augmented material, float32 on the device."""
         m = self.module
@@ -348,7 +364,7 @@ class LibraryModel:
         m = self.module
         shift = torch.stack([self._get(qt, f"shift.{a}") for a in "xyz"]).float().to(self.device)
         x0 = (m.particles0 + m.particle_offset.detach()) + shift
-        v0 = torch.stack([qt[self.index_of[f"v0.{a}"]] for a in "xyz"]).float().to(self.device)
+        v0 = self._v0(qt)
         gravity = self.gravity(qt)
         params = self.material_tensor(qt)
         effects = self.effect_tensor(qt)
@@ -597,7 +613,7 @@ class LibraryModel:
         params = dict(zip(self.base_material.param_names, vals[: len(self.base_material.params)]))
         if self.plastic:
             params["yield_stress"] = float(10 ** q[self.index_of["plastic_yield.log10_yield_stress"]])
-        out = {"params": params, "v0": [float(q[self.index_of[f"v0.{a}"]]) for a in "xyz"],
+        out = {"params": params, "v0": self._v0(qt).detach().cpu().double().tolist(),
                "shift": [float(q[self.index_of[f"shift.{a}"]]) for a in "xyz"]}
         eff = self.effect_tensor(qt).detach().cpu().tolist()
         base_eff: dict = {}

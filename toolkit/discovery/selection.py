@@ -37,7 +37,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 __all__ = ["PENALTY_PER_PARAMETER", "validation_components", "relative_improvements", "penalized", "criterion_noise",
-           "decide", "passes", "camera_reported"]
+           "decide", "passes", "camera_reported", "CARVED_THROUGH_CAMERAS", "camera_judged"]
 
 #: default relative validation improvement each strength parameter beyond the first must buy
 #: (see :attr:`toolkit.discovery.calibration.Thresholds.per_parameter`)
@@ -88,6 +88,23 @@ def relative_improvements(base: dict[str, float], cand: dict[str, float], floors
             den = base[k] + max(floors.get(k, 0.0), 0.0)
             out[k] = (base[k] - cand[k]) / den if den > 0 else 0.0
     return out
+
+
+#: validation components made from stage 0's geometry, which was carved through the fitted cameras
+CARVED_THROUGH_CAMERAS = ("held_out_surfaces",)
+
+
+def camera_judged(relative: dict[str, float], stage0_geometry: bool) -> dict[str, float]:
+    """The relative improvements (:func:`relative_improvements`) that judge the camera-pose control.
+
+    With stage-0 geometry the held-out surfaces were reconstructed through the camera under
+    suspicion: they carry its pose error, so a corrected pose that moves the physics away from
+    them is not evidence against the correction. The control is then judged by the image
+    components only (held-out cameras and frames). With geometry that does not come from the
+    cameras (the true body) every component judges it."""
+    if not stage0_geometry:
+        return dict(relative)
+    return {k: v for k, v in relative.items() if k not in CARVED_THROUGH_CAMERAS}
 
 
 def penalized(validation: float, dof: int, per_parameter: float) -> float:

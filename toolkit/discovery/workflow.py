@@ -49,7 +49,8 @@ from toolkit.discovery.library import LibraryModel
 from toolkit.discovery.ranking import Ranking, rank_candidates
 from toolkit.discovery.refits import final_refit, refit_candidate
 from toolkit.discovery.residuals import Localization, localize
-from toolkit.discovery.selection import criterion_noise, decide, passes, penalized, relative_improvements, validation_components
+from toolkit.discovery.selection import (camera_judged, criterion_noise, decide, passes, penalized, relative_improvements,
+                                        validation_components)
 
 __all__ = ["DiscoveryResult", "discover", "decide", "refit_frames", "truth_from_ground_truth", "validation_components"]
 
@@ -426,8 +427,9 @@ def _validate(lib: LibraryModel, refits: dict[str, Refit], val_frames: list[int]
         fit = (refits["base"].objective - rf.objective) / max(refits["base"].objective, 1e-30)
         control = name != "base" and ranking.get(name).control
         dof = 0 if name == "base" else ranking.get(name).dof
-        mean = float(np.mean(list(rel.values()))) if rel else 0.0
-        worst = float(min(rel.values())) if rel else 0.0
+        judged = camera_judged(rel, floors is not None) if name == "camera_pose" else rel
+        mean = float(np.mean(list(judged.values()))) if judged else 0.0
+        worst = float(min(judged.values())) if judged else 0.0
         v = {"control": control, "validation": mean, "fit": fit, "worst": worst, "dof": dof}
         if name == "camera_pose" and rf.extra and "concentration" in rf.extra:
             v["concentration"] = float(rf.extra["concentration"])

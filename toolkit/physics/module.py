@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import replace
 from typing import Any, Optional, Union
 
 import pytorch_lightning as pl
@@ -37,17 +36,18 @@ from torch import nn
 
 from materials import Material, get_material
 from renderers import RENDERERS, get_renderer
-from strategies import Stage, Strategy, get_strategy
+from strategies import Strategy, get_strategy
 from strategies.base import GROUPS
 from toolkit.data.exclusion import EXCLUSION_META_KEY
 from toolkit.mpm import MPMSimulator, SimConfig
+from toolkit.physics.checkpoint_state import CheckpointStateMixin
 from toolkit.physics.contact import ground_contact_normal, project_off_ground
 from toolkit.physics.embedding import GAUSSIAN_SHAPES, embed, local_deformation
 from toolkit.physics.inputs import PhysicsInput
 from toolkit.physics.objective import FitObjectiveMixin
 from toolkit.physics.prediction import PredictionMixin
 from toolkit.physics.starting_state import (StepStream, cosine_with_warmup, free_flight_curriculum, initial_v0,
-                                             surface_particles, velocity_start_curriculum, warn_if_zero_start_is_held)
+                                             rigid_shift, surface_particles, velocity_start_curriculum, warn_if_zero_start_is_held)
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -66,7 +66,7 @@ DEFAULT_LEARNING_RATES = {
 }
 
 
-class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModule):
+class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMixin, pl.LightningModule):
     """Fit positions, appearance, initial velocity and material to multi-view video.
 
     Args:
@@ -118,6 +118,10 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
             the valid ranges (what runs saved before 2026-11-28 replay with), or
             ``{name: [low, high]}`` for the named parameters. Enforced by projection after each
             optimizer step; a start outside it is an error.
+        body_shift: a rigid translation ``[dx, dy, dz]`` (m, the input's world frame) of the
+            starting body: the particles' and Gaussians' position offsets (``X``) start at it
+            instead of zero. A discovered model carries its refit's shift this way
+            (:mod:`toolkit.discovery.export`); default none.
     """
 
     def __init__(
@@ -144,6 +148,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         embedding: str = "idw",
         gaussian_shape: str = "deformed",
         fit_ranges: Optional[Union[dict, str]] = None,
+        body_shift: Optional[list[float]] = None,
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -199,8 +204,9 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         # ---------------------------------------------------------- X: positions
         self.register_buffer("particles0", inp.particles.float().clone())
         self.register_buffer("gaussian_means0", inp.gaussians.means.float().clone())
-        self.particle_offset = nn.Parameter(torch.zeros_like(self.particles0))
-        self.gaussian_offset = nn.Parameter(torch.zeros_like(self.gaussian_means0))
+        shift = rigid_shift(body_shift)
+        self.particle_offset = nn.Parameter(torch.zeros_like(self.particles0) + shift)
+        self.gaussian_offset = nn.Parameter(torch.zeros_like(self.gaussian_means0) + shift)
         index, weight = embed(self.gaussian_means0, self.particles0, k=embedding_neighbours, mode=embedding)
         self.register_buffer("embed_index", index)
         self.register_buffer("embed_weight", weight)
@@ -235,7 +241,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
         warn_if_zero_start_is_held(start, self.stages)
         self.v0 = nn.Parameter(torch.tensor(start.v0, dtype=torch.float32))
         # resting on a sticky/slip ground at frame 0: v0 has no normal component (issue #24, toolkit.physics.contact)
-        self.contact_normal = ground_contact_normal(inp.particles, cfg, inp.surfaces)
+        self.contact_normal = ground_contact_normal(inp.particles.float() + shift, cfg, inp.surfaces)
         project_off_ground(self.v0.data, self.contact_normal)
         #: where v0 started (m/s): the uncertainty's prior is centred here
         self.v0_start: list[float] = self.v0.detach().tolist()
@@ -344,21 +350,6 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
             index, gradient = torch.zeros(0, 0, dtype=torch.int64), torch.zeros(0, 0, 3)
         self.deform_index, self.deform_gradient = index.to(dev), gradient.to(dev)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # a run saved before Gaussians could deform (no deform buffers) was fitted with rigid shapes: it keeps them
-        if prefix + "embed_index" in state_dict and prefix + "deform_index" not in state_dict:
-            state_dict[prefix + "deform_index"] = torch.zeros(0, 0, dtype=torch.int64)
-            state_dict[prefix + "deform_gradient"] = torch.zeros(0, 0, 3)
-        # a run saved with another embedding (neighbour count or mode, rigid or deformed shapes)
-        # keeps its own: the buffers take its shape
-        for name in ("embed_index", "embed_weight", "deform_index", "deform_gradient"):
-            saved = state_dict.get(prefix + name)
-            if saved is not None and saved.shape != getattr(self, name).shape:
-                setattr(self, name, torch.empty_like(saved, device=getattr(self, name).device))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-        if not self.deform_index.numel():
-            self.gaussian_shape = "rigid"
-
     def _sample(self, stage, step: int) -> tuple[list[int], list[int]]:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
         cams = list(self.input.train_cameras)
@@ -403,34 +394,6 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, pl.LightningModul
 
     def train_dataloader(self):
         return torch.utils.data.DataLoader(StepStream(), batch_size=None)
-
-    def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["projo4d"] = {
-            "curriculum_step": self.curriculum_step,
-            "curriculum": self.curriculum.describe(self.material.registry_name or None),
-            "history": self.history,
-            "grid": None if self._sim is None or self._sim.grid is None else self._sim.grid.__dict__,
-            "substeps_floor": self._restored_substeps_floor if self._sim is None else self._sim.substeps_floor,
-            "uncertainty": self.uncertainty_result,
-            "material_search": self.material_search,
-        }
-
-    def on_load_checkpoint(self, checkpoint: dict) -> None:
-        state = checkpoint.get("projo4d", {})
-        self.curriculum_step = int(state.get("curriculum_step", 0))
-        self.history = list(state.get("history", []))
-        self._restored_grid = state.get("grid")
-        self._restored_substeps_floor = int(state.get("substeps_floor", 0))
-        self.uncertainty_result = state.get("uncertainty")
-        self.material_search = state.get("material_search")
-        self._sim = None
-        saved = state.get("curriculum")
-        # as Stages (a field a checkpoint predates takes its default), names aside
-        unnamed = lambda stages: [  # noqa: E731
-            (replace(Stage.from_dict({k: v for k, v in d.items() if k not in ("start", "end")}), name=""), d.get("start"), d.get("end"))
-            for d in stages]
-        if saved is not None and unnamed(saved) != unnamed(self.curriculum.describe(self.material.registry_name or None)):
-            log.warning("the checkpoint was written with a different curriculum; continuing with the current one")
 
     def training_step(self, batch, batch_idx):
         if self.curriculum_step >= self.total_iterations:

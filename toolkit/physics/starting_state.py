@@ -220,3 +220,17 @@ def describe_start(origin: Optional[dict], estimate: Optional[dict] = None) -> O
     elif rule == "held" and said:
         said += "; the [S] stages held it at stage 1's value"
     return said
+
+
+def rigid_shift(value) -> torch.Tensor:
+    """The module's ``body_shift`` (``None`` or 3 finite numbers, metres) as a (3,) float32
+    tensor, zeros for ``None``; anything else is a ValueError naming the value."""
+    if value is None:
+        return torch.zeros(3)
+    try:
+        t = torch.as_tensor([float(v) for v in value], dtype=torch.float32)
+    except (TypeError, ValueError):
+        t = None
+    if t is None or t.shape != (3,) or not bool(torch.isfinite(t).all()):
+        raise ValueError(f"body_shift must be 3 finite numbers [dx, dy, dz] in metres, got {value!r}")
+    return t
