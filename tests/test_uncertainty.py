@@ -139,12 +139,13 @@ def test_fine_guard_keeps_the_prior_step_where_only_the_coarse_grid_objects(tmp_
     inp = oracle_input(tiny_scene(tmp_path / "fine_truth", dx=0.02), particle_spacing=0.02)
     empty = torch.zeros((0, 3), dtype=inp.surfaces[0].dtype)
     blind = dataclasses.replace(inp, surfaces=[s if f <= 1 else empty for f, s in enumerate(inp.surfaces)])
+    # switched on as a module option (what a run config or the benchmark's --model-options sets)
     m = InversePhysicsModule(blind, curriculum="XAS:1,XASM:1", sim=fit_sim(), renderer="warp", optimize_params=["E"],
-                             initial_params=dict(TRUTH), material_init="given")
+                             initial_params=dict(TRUTH), material_init="given", uncertainty_options={"fine_guard": True})
     with torch.no_grad():
         m.material_raw["E"].fill_(math.log10(TRUTH["E"]) - 0.3)
         m.v0.copy_(torch.tensor(V0, dtype=m.v0.dtype))
-    res = estimate_uncertainty(m, fine_guard=True).to_dict()
+    res = m.uncertainty()
     step, E = res["prior_step"], res["parameters"]["E"]
     assert step["fit_loss_rise"] > FIT_LOSS_TOLERANCE  # the fit's grid objects to the truth
     assert step["fine_fit_loss_rise"] < 0.0  # the truth's own grid prefers it
@@ -152,11 +153,16 @@ def test_fine_guard_keeps_the_prior_step_where_only_the_coarse_grid_objects(tmp_
     assert E["value"] == pytest.approx(TRUTH["E"], rel=1e-2)
     assert "a grid of half the spacing did not" in E["note"]
     m.material_raw["E"].data.fill_(math.log10(TRUTH["E"]) - 0.3)  # without fine_guard the coarse grid decides
-    off = estimate_uncertainty(m).to_dict()
+    off = m.uncertainty(fine_guard=False)  # an explicit option wins over the module's
     assert off["prior_step"]["taken"] is False and "fine_fit_loss_rise" not in off["prior_step"]
     assert math.log10(off["parameters"]["E"]["value"]) == pytest.approx(math.log10(TRUTH["E"]) - 0.3, abs=1e-3)
     with pytest.raises(TypeError, match="fine_guard must be True or False, got 'yes'"):
         estimate_uncertainty(m, fine_guard="yes")  # refused before any rollout
+    for bad, match in (({"fine_guard": "yes"}, "fine_guard = 'yes': expected true or false"),
+                       ({"fine_gaurd": True}, "uncertainty_options.fine_gaurd: unknown option"),
+                       ({"level": 1.2}, r"level = 1.2: expected a number in \(0, 1\)")):
+        with pytest.raises(ValueError, match=match):  # refused when the module is built
+            InversePhysicsModule(blind, curriculum="XAS:1", sim=fit_sim(), renderer="warp", uncertainty_options=bad)
 
 
 def test_contact_detection_and_projection():

@@ -37,7 +37,8 @@ RUN_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_pa
                   "lambda_geometry", "learning_rates", "renderer", "seed", "optimize_gravity")
 #: the other InversePhysicsModule arguments, carried in ``RunSettings.model_options``
 MODULE_OPTIONS = ("effects", "v0_init", "material_init", "lambda_image", "ssim_weight", "warmup_fraction",
-                  "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges", "body_shift")
+                  "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges", "body_shift",
+                  "uncertainty_options")
 #: ``trainer:`` keys ``projo4d run`` accepts and the RunSettings field each sets (None: accepted, not used)
 TRAINER_KEYS = {"accelerator": "device", "default_root_dir": None}
 #: Lightning accelerator -> RunSettings.device
@@ -166,6 +167,13 @@ def check_model_options(options: Any) -> None:
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in shift)):
         raise SettingsError("model_options.body_shift", shift,
                             "expected 3 finite numbers [dx, dy, dz] (m): a rigid translation of the starting body")
+    if options.get("uncertainty_options") is not None:
+        from toolkit.physics.uncertainty import check_uncertainty_options
+
+        try:
+            check_uncertainty_options(options["uncertainty_options"])
+        except ValueError as err:
+            raise SettingsError("model_options.uncertainty_options", options["uncertainty_options"], str(err)) from None
     if options.get("material_init", "search") not in ("search", "given"):
         raise SettingsError("model_options.material_init", options["material_init"],
                             "expected 'search' (coarse search before gradient descent) or 'given' (start at the guesses)")

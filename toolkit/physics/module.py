@@ -122,6 +122,10 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
             starting body: the particles' and Gaussians' position offsets (``X``) start at it
             instead of zero. A discovered model carries its refit's shift this way
             (:mod:`toolkit.discovery.export`); default none.
+        uncertainty_options: keyword options of the uncertainty computed after the fit
+            (:func:`~toolkit.physics.uncertainty.estimate_uncertainty`: ``level``, ``prior_step``,
+            ``grid_term``, ``fine_guard``), e.g. ``{"fine_guard": True}``; options given to
+            :meth:`uncertainty` win. Checked here, before any work.
     """
 
     def __init__(
@@ -149,6 +153,7 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
         gaussian_shape: str = "deformed",
         fit_ranges: Optional[Union[dict, str]] = None,
         body_shift: Optional[list[float]] = None,
+        uncertainty_options: Optional[dict] = None,
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -175,6 +180,10 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
             curriculum=self.curriculum.schedule_string(self.material.registry_name or None),
             sim=cfg.to_dict(),
         )
+        from toolkit.physics.uncertainty import check_uncertainty_options
+
+        #: default keyword options of :meth:`uncertainty`
+        self.uncertainty_options = check_uncertainty_options(uncertainty_options)
         self.effect_init = dict(effects or {})
         if material_init not in ("search", "given"):
             raise ValueError(f"material_init must be 'search' or 'given', got {material_init!r}")
@@ -328,11 +337,12 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
 
     def uncertainty(self, **options) -> dict:
         """90 % intervals and identifiability labels of the estimate (:mod:`toolkit.physics.uncertainty`);
-        ``options`` go to :func:`~toolkit.physics.uncertainty.estimate_uncertainty`. Cached: the
-        result is kept in :attr:`uncertainty_result` and in checkpoints."""
+        ``options`` go to :func:`~toolkit.physics.uncertainty.estimate_uncertainty`, over the
+        module's ``uncertainty_options``. Cached: the result is kept in :attr:`uncertainty_result`
+        and in checkpoints."""
         from toolkit.physics.uncertainty import estimate_uncertainty
 
-        self.uncertainty_result = estimate_uncertainty(self, **options).to_dict()
+        self.uncertainty_result = estimate_uncertainty(self, **{**self.uncertainty_options, **options}).to_dict()
         return self.uncertainty_result
 
     def set_gaussian_shape(self, shape: str) -> None:

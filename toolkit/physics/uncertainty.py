@@ -243,6 +243,28 @@ def _frames(module) -> list[int]:
     return [f for f in range(1, module.input.n_train) if len(module.input.surfaces[f])]
 
 
+def check_uncertainty_options(options: Optional[dict]) -> dict:
+    """``options`` for :func:`estimate_uncertainty` as a dict (``{}`` for ``None``), checked
+    before any work: names must be its keyword parameters, ``level`` a number in (0, 1) and the
+    switches True or False. Raises ValueError naming the option and what is expected."""
+    import inspect
+
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise ValueError(f"uncertainty_options must be a mapping such as {{'fine_guard': True}}, got {options!r}")
+    valid = [n for n in inspect.signature(estimate_uncertainty).parameters if n != "module"]
+    for name, value in options.items():
+        if name not in valid:
+            raise ValueError(f"uncertainty_options.{name}: unknown option; valid: {', '.join(valid)}")
+        if name == "level":
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+                raise ValueError(f"uncertainty_options.level = {value!r}: expected a number in (0, 1), e.g. 0.9")
+        elif not isinstance(value, bool):
+            raise ValueError(f"uncertainty_options.{name} = {value!r}: expected true or false")
+    return dict(options)
+
+
 def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, grid_term: bool = True,
                          fine_guard: bool = False) -> Uncertainty:
     """Intervals and labels for ``module``'s current estimate (see the module docstring).
