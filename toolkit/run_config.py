@@ -162,18 +162,16 @@ def check_model_options(options: Any) -> None:
     if v0 is not None and v0 not in ("auto", "zero") and not (isinstance(v0, (list, tuple)) and len(v0) == 3 and all(
             isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in v0)):
         raise SettingsError("model_options.v0_init", v0, "expected 3 finite numbers (m/s, canonical frame), 'auto' or 'zero'")
-    shift = options.get("body_shift")
-    if shift is not None and not (isinstance(shift, (list, tuple)) and len(shift) == 3 and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in shift)):
-        raise SettingsError("model_options.body_shift", shift,
-                            "expected 3 finite numbers [dx, dy, dz] (m): a rigid translation of the starting body")
-    if options.get("uncertainty_options") is not None:
-        from toolkit.physics.uncertainty import check_uncertainty_options
+    # the module's own checks, run here so that a config fails before any work
+    from toolkit.physics.starting_state import rigid_shift
+    from toolkit.physics.uncertainty import check_uncertainty_options
 
-        try:
-            check_uncertainty_options(options["uncertainty_options"])
-        except ValueError as err:
-            raise SettingsError("model_options.uncertainty_options", options["uncertainty_options"], str(err)) from None
+    for key, check in (("body_shift", rigid_shift), ("uncertainty_options", check_uncertainty_options)):
+        if options.get(key) is not None:
+            try:
+                check(options[key])
+            except ValueError as err:
+                raise SettingsError(f"model_options.{key}", options[key], str(err)) from None
     if options.get("material_init", "search") not in ("search", "given"):
         raise SettingsError("model_options.material_init", options["material_init"],
                             "expected 'search' (coarse search before gradient descent) or 'given' (start at the guesses)")

@@ -72,7 +72,7 @@ def module_with_effect(refit: Refit):
         lambda_image=m.lambda_image, lambda_geometry=m.lambda_geometry, ssim_weight=m.ssim_weight,
         learning_rates=hp.get("learning_rates"), warmup_fraction=m.warmup_fraction, seed=m.seed,
         embedding_neighbours=hp.get("embedding_neighbours", 8), embedding=hp.get("embedding", "idw"),
-        gaussian_shape=hp.get("gaussian_shape", "rigid"),
+        gaussian_shape=hp.get("gaussian_shape", "rigid"), body_shift=phys["shift"],
     )
     shift = torch.tensor(phys["shift"], dtype=torch.float32)
     with torch.no_grad():
@@ -140,7 +140,7 @@ and loss weights;
              "sim": sim, "lambda_geometry": float(m.lambda_geometry), "optimize_gravity": bool(m.optimize_gravity),
              "effects": effects, "v0_init": [float(v) for v in new.v0.detach().cpu().tolist()],
              "ssim_weight": float(m.ssim_weight)}
-    shift = [float(v) for v in refit.lib.physical(refit.q)["shift"]]
+    shift = [float(v) for v in hp.get("body_shift") or ()]
     if any(shift):
         model["body_shift"] = shift
     if hp.get("material_options"):

@@ -232,5 +232,6 @@ def rigid_shift(value) -> torch.Tensor:
     except (TypeError, ValueError):
         t = None
     if t is None or t.shape != (3,) or not bool(torch.isfinite(t).all()):
-        raise ValueError(f"body_shift must be 3 finite numbers [dx, dy, dz] in metres, got {value!r}")
+        raise ValueError(f"body_shift must be 3 finite numbers [dx, dy, dz] in metres (a rigid translation of the "
+                         f"starting body), got {value!r}")
     return t
