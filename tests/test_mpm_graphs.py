@@ -9,31 +9,57 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 import warp as wp
 
 from tests.mpm_scenes import block
 from toolkit.mpm import MPMSimulator, SimConfig
-from toolkit.mpm.config import captures_graphs
+from toolkit.mpm.config import CPU_GRAPH_MAX_NODES, captures_graphs
 
 
-@pytest.mark.parametrize("mode,device,deterministic,expected", [
-    ("auto", "cuda:0", False, True),
-    ("auto", "cuda:0", True, False),
-    ("auto", "cpu", False, False),
-    ("auto", "cpu", True, False),
-    (True, "cuda:0", True, True),
-    (True, "cpu", False, True),
-    (False, "cuda:0", False, False),
+@pytest.mark.parametrize("mode,device,deterministic,nodes,expected", [
+    ("auto", "cuda:0", False, None, True),
+    ("auto", "cuda:0", False, 10**7, True),
+    ("auto", "cuda:0", True, 1000, False),
+    ("auto", "cpu", False, None, False),  # no grid yet
+    ("auto", "cpu", False, CPU_GRAPH_MAX_NODES, True),
+    ("auto", "cpu", False, CPU_GRAPH_MAX_NODES + 1, False),
+    ("auto", "cpu", True, 1000, False),
+    (True, "cuda:0", True, None, True),
+    (True, "cpu", False, 10**7, True),
+    (False, "cuda:0", False, 1000, False),
+    (False, "cpu", False, 1000, False),
 ])
-def test_which_rollouts_capture_graphs(mode, device, deterministic, expected):
-    assert captures_graphs(mode, device, deterministic) is expected
+def test_which_rollouts_capture_graphs(mode, device, deterministic, nodes, expected):
+    assert captures_graphs(mode, device, deterministic, nodes) is expected
 
 
 def test_simulator_follows_the_rule():
+    """``auto`` on the CPU: captured on a small grid, launched one by one on a large one, and the
+    two give bit-identical rollouts and gradients (the launched grid update visits only the box
+    the particles reach; the nodes outside it carry no mass)."""
     sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, deterministic=True), device="cpu")
     assert sim.use_graphs() is False
     sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, graphs=True), device="cpu")
     assert sim.use_graphs() is True
+
+    def run(graphs, dx):
+        s = MPMSimulator("neo_hookean", SimConfig(dx=dx, substeps=10, boundary="sticky", graphs=graphs), device="cpu")
+        assert s.use_graphs() is (graphs is True)  # no grid before the first rollout
+        raw = s.material.to_raw({"E": 2e4, "nu": 0.3}).requires_grad_()
+        v0 = torch.tensor([0.3, -0.5, 0.1], requires_grad=True)
+        out = s.simulate(block((6, 6, 6), 0.0125, (0.5, 0.2, 0.5)), v0, s.material.to_physical(raw),
+                         gravity=torch.tensor([0.0, -9.8, 0.0]), n_frames=3)
+        (out.positions[1:] ** 2).sum().backward()
+        return s, out.positions.detach().numpy(), raw.grad.numpy(), v0.grad.numpy()
+
+    small, *auto_small = run("auto", 0.05)
+    assert np.prod(small.grid.dims) <= CPU_GRAPH_MAX_NODES and small.use_graphs() and small._graphs
+    _, *launched = run(False, 0.05)
+    for a, b in zip(auto_small, launched):
+        np.testing.assert_array_equal(a, b)
+    large, *_ = run("auto", 0.01)
+    assert np.prod(large.grid.dims) > CPU_GRAPH_MAX_NODES and not large.use_graphs() and not large._graphs
 
 
 def _rollout(graphs, substeps: int, device: str) -> tuple[MPMSimulator, np.ndarray]:

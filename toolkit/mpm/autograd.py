@@ -107,7 +107,7 @@ class SimulateFunction(torch.autograd.Function):
                 key = ("backward", local, length, id(states[0].x), id(wp_params), id(wp_gravity), id(wp_effects),
                        per_particle, dt)
                 if key not in graphs:
-                    with wp.ScopedCapture(device=sim.device, force_module_load=True) as capture:
+                    with sim.capture() as capture:
                         chunk_backward(local, length)
                     graphs[key] = capture.graph
                 wp.capture_launch(graphs[key])

@@ -700,7 +700,15 @@ class MPMSimulator:
 
     def use_graphs(self) -> bool:
         """Whether substep chains are captured as graphs (see :func:`captures_graphs`)."""
-        return captures_graphs(self.config.graphs, self.device, self.config.deterministic)
+        nodes = None if self._grid is None else int(np.prod(self._grid.dims))
+        return captures_graphs(self.config.graphs, self.device, self.config.deterministic, nodes)
+
+    def capture(self) -> wp.ScopedCapture:
+        """A graph capture on this simulator's device. On CUDA every module is loaded first (a
+        kernel loaded during a capture would not be in the graph on older drivers); on the CPU
+        modules load when a captured launch first needs them, since loading them all compiles
+        every Warp module of the process on a cold kernel cache."""
+        return wp.ScopedCapture(device=self.device, force_module_load=str(self.device).startswith("cuda"))
 
     def _run_substeps(self, a, b, grid, args, first: int, length: int, status, tracers, graphs: dict | None):
         """Run ``length`` substeps from state ``a`` (frame-local index ``first``); returns the new (a, b).
@@ -723,7 +731,7 @@ class MPMSimulator:
                None if tracers is None else id(tracers[0]))
         if key not in graphs:
             tr_before = None if tracers is None else list(tracers)
-            with wp.ScopedCapture(device=self.device, force_module_load=True) as capture:
+            with self.capture() as capture:
                 result = chain()
             graphs[key] = (capture.graph, result, None if tracers is None else list(tracers))
             if tracers is not None:

@@ -112,7 +112,7 @@ class KeptTapes:
         key = ("taped", index, first, length, id(state.x), id(pool.states[0].x), id(args[0]), args[1], id(args[2]),
                id(args[3]), args[4])
         if key not in graphs:
-            with wp.ScopedCapture(device=sim.device, force_module_load=True) as capture:
+            with sim.capture() as capture:
                 tape = body()
             graphs[key] = (capture.graph, tape)
         graph, tape = graphs[key]
@@ -135,7 +135,7 @@ class KeptTapes:
             return
         key = ("tape_backward", index, id(tape), id(carry[0]))
         if key not in graphs:
-            with wp.ScopedCapture(device=self.sim.device, force_module_load=True) as capture:
+            with self.sim.capture() as capture:
                 body()
             graphs[key] = capture.graph
         wp.capture_launch(graphs[key])
