@@ -1,7 +1,7 @@
 """Confirmation: short refits of the top candidates with the base parameters refitted too.
 
 Each refit is a bounded Levenberg-Marquardt minimization of the Gauss-Newton objective
-``0.5 |r|^2`` (:meth:`~toolkit.discovery.library.LibraryModel.residuals`) over the base
+``0.5 |r|^2`` (:meth:`~toolkit.discovery.library_objectives.LibraryObjectives.residuals`) over the base
 parameters ``theta`` (initial velocity, optimized material parameters, a rigid shift of the
 initial positions, optimized parameters of effects already in the model) and the candidate's
 strengths, starting from the fitted base with the strengths at the ranking's prediction.

@@ -1,7 +1,7 @@
 """Cheap ranking of the candidates: a projected score test at zero strength.
 
 Method (a Gauss-Newton / Rao score test). Linearize the residual vector ``r`` of the base model
-(:meth:`~toolkit.discovery.library.LibraryModel.residuals`) at the fitted base point ``q0``
+(:meth:`~toolkit.discovery.library_objectives.LibraryObjectives.residuals`) at the fitted base point ``q0``
 (every strength zero) with a forward-difference Jacobian ``J = [J_theta, J_s]`` (base
 parameters, candidate strengths; one rollout per column, in step units). Let ``P`` be the
 orthogonal projector that removes the span of ``J_theta`` (the base parameters' directions,
