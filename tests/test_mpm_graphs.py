@@ -35,31 +35,52 @@ def test_which_rollouts_capture_graphs(mode, device, deterministic, nodes, expec
 
 
 def test_simulator_follows_the_rule():
-    """``auto`` on the CPU: captured on a small grid, launched one by one on a large one, and the
-    two give bit-identical rollouts and gradients (the launched grid update visits only the box
-    the particles reach; the nodes outside it carry no mass)."""
+    """``auto`` on the CPU: captured on a small grid, launched one by one on a large one. A CPU
+    chain is captured on its second use (:class:`~toolkit.mpm.graph_cache.GraphCache`), so the
+    third call replays graphs. Every call gives rollouts and gradients bit-identical to launching
+    one by one (whose grid update visits only the box the particles reach; the nodes outside it
+    carry no mass)."""
     sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, deterministic=True), device="cpu")
     assert sim.use_graphs() is False
     sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, graphs=True), device="cpu")
     assert sim.use_graphs() is True
 
-    def run(graphs, dx):
+    def runs(graphs, dx, calls=3):
         s = MPMSimulator("neo_hookean", SimConfig(dx=dx, substeps=10, boundary="sticky", graphs=graphs), device="cpu")
         assert s.use_graphs() is (graphs is True)  # no grid before the first rollout
-        raw = s.material.to_raw({"E": 2e4, "nu": 0.3}).requires_grad_()
-        v0 = torch.tensor([0.3, -0.5, 0.1], requires_grad=True)
-        out = s.simulate(block((6, 6, 6), 0.0125, (0.5, 0.2, 0.5)), v0, s.material.to_physical(raw),
-                         gravity=torch.tensor([0.0, -9.8, 0.0]), n_frames=3)
-        (out.positions[1:] ** 2).sum().backward()
-        return s, out.positions.detach().numpy(), raw.grad.numpy(), v0.grad.numpy()
+        out = []
+        for _ in range(calls):
+            raw = s.material.to_raw({"E": 2e4, "nu": 0.3}).requires_grad_()
+            v0 = torch.tensor([0.3, -0.5, 0.1], requires_grad=True)
+            res = s.simulate(block((6, 6, 6), 0.0125, (0.5, 0.2, 0.5)), v0, s.material.to_physical(raw),
+                             gravity=torch.tensor([0.0, -9.8, 0.0]), n_frames=3)
+            (res.positions[1:] ** 2).sum().backward()
+            out.append((res.positions.detach().numpy(), raw.grad.numpy(), v0.grad.numpy()))
+            captured = len(s._graphs)
+            if len(out) == 1:
+                assert captured == 0  # first use: launched one by one
+        return s, out
 
-    small, *auto_small = run("auto", 0.05)
-    assert np.prod(small.grid.dims) <= CPU_GRAPH_MAX_NODES and small.use_graphs() and small._graphs
-    _, *launched = run(False, 0.05)
-    for a, b in zip(auto_small, launched):
-        np.testing.assert_array_equal(a, b)
-    large, *_ = run("auto", 0.01)
+    small, auto_small = runs("auto", 0.05)
+    assert np.prod(small.grid.dims) <= CPU_GRAPH_MAX_NODES and small.use_graphs() and len(small._graphs) > 0
+    _, launched = runs(False, 0.05, calls=1)
+    for call in auto_small:
+        for a, b in zip(call, launched[0]):
+            np.testing.assert_array_equal(a, b)
+    large, _ = runs("auto", 0.01, calls=2)
     assert np.prod(large.grid.dims) > CPU_GRAPH_MAX_NODES and not large.use_graphs() and not large._graphs
+
+
+def test_graph_cache_captures_a_key_on_its_min_uses_th_use():
+    from toolkit.mpm.graph_cache import GraphCache
+
+    cache = GraphCache(2)
+    assert [cache.should_capture("a") for _ in range(2)] == [False, True]
+    cache["a"] = "graph"
+    assert cache.should_capture("a") and not cache.should_capture("b")
+    assert GraphCache(1).should_capture("c")
+    with pytest.raises(ValueError, match="min_uses"):
+        GraphCache(0)
 
 
 def _rollout(graphs, substeps: int, device: str) -> tuple[MPMSimulator, np.ndarray]:

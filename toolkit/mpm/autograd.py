@@ -101,11 +101,11 @@ class SimulateFunction(torch.autograd.Function):
                     kept.backward_chunk(c, carry, graphs)
                     continue
                 states[0].assign(ctx.checkpoints[c])
-                if graphs is None:
+                key = None if graphs is None else ("backward", local, length, id(states[0].x), id(wp_params),
+                                                   id(wp_gravity), id(wp_effects), per_particle, dt)
+                if key is None or not graphs.should_capture(key):
                     chunk_backward(local, length)
                     continue
-                key = ("backward", local, length, id(states[0].x), id(wp_params), id(wp_gravity), id(wp_effects),
-                       per_particle, dt)
                 if key not in graphs:
                     with sim.capture() as capture:
                         chunk_backward(local, length)

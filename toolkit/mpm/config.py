@@ -191,8 +191,9 @@ class SimConfig:
 #: core of a 2-core development machine (``benchmarks/cpu_graphs.py``: a 6-frame rollout and its
 #: gradient; repeated runs differ by up to 30 %): captured is 1.1-1.7x faster on 4k nodes and 1.4-1.7x
 #: on 8k, 0.8-1.1x near 13k, and 0.2-0.7x on 162k nodes, where the particles' box is a small part
-#: of the grid. A discovery test scene (about 5.7k nodes): base fit 29.8 -> 22.8 s, discovery
-#: 51.5 -> 37.6 s, with bit-identical results.
+#: of the grid. A discovery test scene (about 5.7k nodes): base fit 29.8 -> 25.8 s, discovery
+#: 51.5 -> 42.2 s, with bit-identical results (a chain is captured on its second use; see
+#: :mod:`toolkit.mpm.graph_cache`).
 CPU_GRAPH_MAX_NODES = 8192
 
 

@@ -32,6 +32,7 @@ import warp as wp
 
 from materials import Material, get_material
 from toolkit.mpm.config import CFLError, NaNError, OutOfDomainError, SimConfig, captures_graphs
+from toolkit.mpm.graph_cache import GraphCache
 from toolkit.mpm.planning import SubstepPlan, check_grid_memory, ground_lattice_index, plan_substeps
 from toolkit.mpm.state import GridBuffers, GridSpec, ParticleBuffers, RolloutResult, SimulationResult, TapedChunk
 from toolkit.mpm.effects import Effect, EffectContext, get_effect
@@ -86,7 +87,7 @@ class MPMSimulator:
         self._ground_j = -1  # the grid's highest ground layer (GridSpec.ground_layer), set with the grid
         self._buffers: dict = {}
         # captured substep chains; they reference the buffers above, so any reallocation clears them
-        self._graphs: dict = {}
+        self._graphs: GraphCache = self._new_graphs()
         offsets = np.cumsum([0] + [len(e.params) for e in self.effects]).tolist()
         self._effect_offsets = offsets[:-1]
         self.n_effect_params = offsets[-1]
@@ -254,7 +255,7 @@ class MPMSimulator:
         if spec != self._grid:
             self._grid = spec
             self._buffers = {}
-            self._graphs = {}
+            self._graphs = self._new_graphs()
             ground = self.config.ground_height
             self._ground_j = spec.ground_layer(ground) if ground is not None else -1
 
@@ -297,14 +298,14 @@ class MPMSimulator:
         key = ("pool", n, chunk)
         if key not in self._buffers:
             self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "pool"}
-            self._graphs = {}
+            self._graphs = self._new_graphs()
             self._buffers[key] = TapedChunk(n, self._grid.dims, chunk, self.device)
         return self._buffers[key]
 
     def _pingpong(self, n: int):
         key = ("pingpong", n)
         if key not in self._buffers:
-            self._graphs = {}
+            self._graphs = self._new_graphs()
             self._buffers[key] = (
                 ParticleBuffers(n, self.device),
                 ParticleBuffers(n, self.device),
@@ -314,7 +315,7 @@ class MPMSimulator:
 
     def _persistent(self, key: tuple, make):
         if key not in self._buffers:
-            self._graphs = {}
+            self._graphs = self._new_graphs()
             self._buffers[key] = make()
         return self._buffers[key]
 
@@ -703,6 +704,11 @@ class MPMSimulator:
         nodes = None if self._grid is None else int(np.prod(self._grid.dims))
         return captures_graphs(self.config.graphs, self.device, self.config.deterministic, nodes)
 
+    def _new_graphs(self) -> GraphCache:
+        """An empty graph cache: a key is captured on its first use on CUDA, its second on the CPU
+        (see :mod:`toolkit.mpm.graph_cache`)."""
+        return GraphCache(1 if str(self.device).startswith("cuda") else 2)
+
     def capture(self) -> wp.ScopedCapture:
         """A graph capture on this simulator's device. On CUDA every module is loaded first (a
         kernel loaded during a capture would not be in the graph on older drivers); on the CPU
@@ -725,10 +731,10 @@ class MPMSimulator:
                     tracers.reverse()
             return s_in, s_out
 
-        if graphs is None:
+        key = None if graphs is None else ("forward", first, length, id(a), id(grid), id(args[0]), args[1], args[4],
+                                           None if tracers is None else id(tracers[0]))
+        if key is None or not graphs.should_capture(key):
             return chain()
-        key = ("forward", first, length, id(a), id(grid), id(args[0]), args[1], args[4],
-               None if tracers is None else id(tracers[0]))
         if key not in graphs:
             tr_before = None if tracers is None else list(tracers)
             with self.capture() as capture:

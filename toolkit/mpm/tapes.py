@@ -26,6 +26,7 @@ from toolkit.mpm.planning import NODE_BYTES, PARTICLE_BYTES, default_memory_limi
 from toolkit.mpm.state import TapedChunk
 
 if TYPE_CHECKING:  # pragma: no cover
+    from toolkit.mpm.graph_cache import GraphCache
     from toolkit.mpm.simulator import MPMSimulator
 
 __all__ = ["KeptTapes", "tape_bytes"]
@@ -84,7 +85,7 @@ class KeptTapes:
         self.inputs = inputs
         self.tapes = {}
 
-    def forward_chunk(self, index: int, state, args: tuple, first: int, length: int, status, graphs: Optional[dict]) -> None:
+    def forward_chunk(self, index: int, state, args: tuple, first: int, length: int, status, graphs: Optional["GraphCache"]) -> None:
         """Run chunk ``index`` (``length`` substeps from frame-local substep ``first``) from
         ``state`` on its own buffers under a tape, and write the end state back into ``state``."""
         sim = self.sim
@@ -106,11 +107,11 @@ class KeptTapes:
                 flags.mark_init()
             return tape
 
-        if graphs is None:
+        key = None if graphs is None else ("taped", index, first, length, id(state.x), id(pool.states[0].x), id(args[0]),
+                                           args[1], id(args[2]), id(args[3]), args[4])
+        if key is None or not graphs.should_capture(key):
             self.tapes[index] = body()
             return
-        key = ("taped", index, first, length, id(state.x), id(pool.states[0].x), id(args[0]), args[1], id(args[2]),
-               id(args[3]), args[4])
         if key not in graphs:
             with sim.capture() as capture:
                 tape = body()
@@ -119,7 +120,7 @@ class KeptTapes:
         wp.capture_launch(graph)
         self.tapes[index] = tape
 
-    def backward_chunk(self, index: int, carry: Sequence, graphs: Optional[dict]) -> None:
+    def backward_chunk(self, index: int, carry: Sequence, graphs: Optional["GraphCache"]) -> None:
         """The adjoint of chunk ``index``: ``carry`` holds the gradient of its end state on entry
         and of its start state on return."""
         pool, tape = self.pools[index], self.tapes[index]
@@ -130,10 +131,10 @@ class KeptTapes:
             for dst, src in zip(carry, pool.states[0].arrays()):
                 wp.copy(dst, src.grad)
 
-        if graphs is None:
+        key = None if graphs is None else ("tape_backward", index, id(tape), id(carry[0]))
+        if key is None or not graphs.should_capture(key):
             body()
             return
-        key = ("tape_backward", index, id(tape), id(carry[0]))
         if key not in graphs:
             with self.sim.capture() as capture:
                 body()
