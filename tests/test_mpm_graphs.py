@@ -1,8 +1,9 @@
 """When substep chains are captured as Warp graphs, and what a deterministic capture costs.
 
-A captured deterministic launch keeps its sort-reduce scratch for the graph's lifetime, so
-``graphs="auto"`` launches deterministic rollouts one by one (the truth generator's 45 GB, see
-:func:`toolkit.mpm.config.captures_graphs`). The CUDA test measures that memory directly.
+A captured deterministic CUDA launch keeps its sort-reduce scratch for the graph's lifetime, so
+``graphs="auto"`` launches deterministic CUDA rollouts one by one (the truth generator's 45 GB, see
+:func:`toolkit.mpm.config.captures_graphs`). The CUDA test measures that memory directly. On the
+CPU ``auto`` captures small grids, deterministic or not.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from toolkit.mpm.config import CPU_GRAPH_MAX_NODES, captures_graphs
     ("auto", "cpu", False, None, False),  # no grid yet
     ("auto", "cpu", False, CPU_GRAPH_MAX_NODES, True),
     ("auto", "cpu", False, CPU_GRAPH_MAX_NODES + 1, False),
-    ("auto", "cpu", True, 1000, False),
+    ("auto", "cpu", True, 1000, True),  # a CPU kernel is deterministic anyway and allocates no scratch
     (True, "cuda:0", True, None, True),
     (True, "cpu", False, 10**7, True),
     (False, "cuda:0", False, 1000, False),
@@ -95,10 +96,22 @@ def _rollout(graphs, substeps: int, device: str) -> tuple[MPMSimulator, np.ndarr
     return sim, out.positions[-1].cpu().numpy()
 
 
-def test_deterministic_rollout_runs_launch_by_launch_on_cpu():
-    _, x = _rollout("auto", 20, "cpu")
-    assert x.shape == (1728, 3) and np.isfinite(x).all()
-    assert x[:, 1].mean() < 0.2  # it fell
+def test_deterministic_cpu_rollout_is_captured_and_equals_launching_one_by_one():
+    """On the CPU ``deterministic`` allocates no scratch, so ``auto`` captures a small grid's
+    deterministic rollout too, with the same positions as launched. Both frames run the same
+    chain of 20 substeps on the same buffers: the first is launched one by one, the second is
+    captured and replayed, and a second rollout replays both."""
+    _, launched = _rollout(False, 20, "cpu")
+    assert launched.shape == (1728, 3) and np.isfinite(launched).all()
+    assert launched[:, 1].mean() < 0.2  # it fell
+    sim, first = _rollout("auto", 20, "cpu")
+    assert sim.use_graphs() and len(sim._graphs) == 1
+    x0 = block((12, 12, 12), 0.0125, (0.5, 0.2, 0.5))
+    again = sim.rollout(x0, v0=np.array([0.3, -0.5, 0.1], np.float32), params=sim.material.pack({"E": 2e4, "nu": 0.3}),
+                        n_frames=2).positions[-1].cpu().numpy()
+    assert len(sim._graphs) == 1
+    np.testing.assert_array_equal(first, launched)
+    np.testing.assert_array_equal(again, launched)
 
 
 def _memory_taken(graphs, substeps: int) -> tuple[int, np.ndarray]:

@@ -78,9 +78,8 @@ class SimConfig:
             ``clamp`` keeps particles inside (domain faces act as separating walls).
         cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
         graphs: capture chains of substeps as Warp graphs and replay them (removes the Python
-            launch overhead that dominates small problems): ``"auto"`` (on CUDA; on the CPU when
-            the grid has at most :data:`CPU_GRAPH_MAX_NODES` nodes; never with ``deterministic``),
-            True, False. A captured deterministic launch keeps its sort-reduce
+            launch overhead that dominates small problems): ``"auto"`` (on CUDA unless ``deterministic``; on the CPU
+            when the grid has at most :data:`CPU_GRAPH_MAX_NODES` nodes), True, False. A captured deterministic launch keeps its sort-reduce
             scratch (about 100 bytes per particle per substep) for the graph's lifetime, so a
             whole frame's graphs held 45 GB for a 49k-particle truth at 306 substeps per frame.
         auto_substeps: plan the substeps of every rollout from the material's wave speed at the
@@ -200,20 +199,18 @@ CPU_GRAPH_MAX_NODES = 8192
 def captures_graphs(mode: bool | str, device: str, deterministic: bool, nodes: int | None = None) -> bool:
     """Whether a simulator captures its substep chains as Warp graphs (``SimConfig.graphs``).
 
-    ``"auto"`` never captures a ``deterministic`` rollout: a deterministic launch allocates scratch
-    for its sort-reduce, and a captured graph keeps every launch's scratch alive as long as the
-    graph, so the memory grows with the substeps per frame (45 GB for a 49k-particle truth at 306
-    substeps per frame, against under 1 GB launched one by one). Otherwise it captures on CUDA,
-    and on the CPU when the grid has at most :data:`CPU_GRAPH_MAX_NODES` nodes (``nodes``; ``None``:
-    not known yet, no capture). A CPU replay skips the Python cost of packing each launch's
+    ``"auto"`` captures on CUDA unless ``deterministic``: a deterministic CUDA launch allocates
+    scratch for its sort-reduce, and a captured graph keeps every launch's scratch alive as long as
+    the graph, so the memory grows with the substeps per frame (45 GB for a 49k-particle truth at
+    306 substeps per frame, against under 1 GB launched one by one). On the CPU, where a kernel runs
+    on one thread and ``deterministic`` allocates nothing, it captures when the grid has at most
+    :data:`CPU_GRAPH_MAX_NODES` nodes (``nodes``; ``None``: not known yet, no capture). A CPU replay skips the Python cost of packing each launch's
     arguments, but a captured grid update visits every node, where launched one by one it visits
     only the box the particles reach; on a small grid the first saving is larger. ``True``/``False``
     are obeyed.
     """
     if mode != "auto":
         return bool(mode)
-    if deterministic:
-        return False
     if str(device).startswith("cuda"):
-        return True
+        return not deterministic
     return nodes is not None and nodes <= CPU_GRAPH_MAX_NODES
