@@ -72,6 +72,32 @@ def test_simulator_follows_the_rule():
     assert np.prod(large.grid.dims) > CPU_GRAPH_MAX_NODES and not large.use_graphs() and not large._graphs
 
 
+def test_kept_tapes_capture_a_backward_only_for_a_captured_forward():
+    """With kept tapes on the CPU, a pass that records its tapes launch by launch (a fresh tape per
+    pass, whose id can be a dead tape's) never captures their backward. The forward chunks are
+    captured first (on a key's second use; the first backward allocates gradient buffers, which
+    starts a new cache), and their backward one pass later, keeping the tape in the entry. The
+    gradients are the same on every pass."""
+    sim = MPMSimulator("neo_hookean", SimConfig(dx=0.05, substeps=10, boundary="sticky", keep_tapes=True,
+                                                checkpoint_every=5), device="cpu")
+    x0 = block((6, 6, 6), 0.0125, (0.5, 0.2, 0.5))
+    kinds, grads = [], []
+    for _ in range(5):
+        raw = sim.material.to_raw({"E": 2e4, "nu": 0.3}).requires_grad_()
+        out = sim.simulate(x0, torch.tensor([0.3, -0.5, 0.1]), sim.material.to_physical(raw),
+                           gravity=torch.tensor([0.0, -9.8, 0.0]), n_frames=2)
+        (out.positions[1:] ** 2).sum().backward()
+        grads.append(raw.grad.numpy())
+        kinds.append(sorted({k[0] for k in sim._graphs}))
+    first_taped = next(i for i, k in enumerate(kinds) if "taped" in k)
+    first_backward = next(i for i, k in enumerate(kinds) if "tape_backward" in k)
+    assert first_backward == first_taped + 1 and kinds[-1] == ["tape_backward", "taped"]
+    taped = {id(v[1]) for k, v in sim._graphs.items() if k[0] == "taped"}
+    assert all(id(v[1]) in taped for k, v in sim._graphs.items() if k[0] == "tape_backward")
+    for g in grads[1:]:
+        np.testing.assert_array_equal(g, grads[0])
+
+
 def test_graph_cache_captures_a_key_on_its_min_uses_th_use():
     from toolkit.mpm.graph_cache import GraphCache
 

@@ -78,8 +78,9 @@ class SimConfig:
             ``clamp`` keeps particles inside (domain faces act as separating walls).
         cfl: a substep with ``|v| dt > cfl * dx`` for some particle is a CFL violation.
         graphs: capture chains of substeps as Warp graphs and replay them (removes the Python
-            launch overhead that dominates small problems): ``"auto"`` (on CUDA unless ``deterministic``; on the CPU
-            when the grid has at most :data:`CPU_GRAPH_MAX_NODES` nodes), True, False. A captured deterministic launch keeps its sort-reduce
+            launch overhead that dominates small problems): ``"auto"`` (on CUDA unless
+            ``deterministic``; on the CPU when the grid has at most :data:`CPU_GRAPH_MAX_NODES`
+            nodes), True, False. A captured deterministic CUDA launch keeps its sort-reduce
             scratch (about 100 bytes per particle per substep) for the graph's lifetime, so a
             whole frame's graphs held 45 GB for a 49k-particle truth at 306 substeps per frame.
         auto_substeps: plan the substeps of every rollout from the material's wave speed at the
@@ -188,11 +189,11 @@ class SimConfig:
 
 #: ``graphs="auto"`` captures CPU rollouts on grids of at most this many nodes. Measured on one
 #: core of a 2-core development machine (``benchmarks/cpu_graphs.py``: a 6-frame rollout and its
-#: gradient; repeated runs differ by up to 30 %): captured is 1.1-1.7x faster on 4k nodes and 1.4-1.7x
-#: on 8k, 0.8-1.1x near 13k, and 0.2-0.7x on 162k nodes, where the particles' box is a small part
-#: of the grid. A discovery test scene (about 5.7k nodes): base fit 29.8 -> 25.8 s, discovery
-#: 51.5 -> 42.2 s, with bit-identical results (a chain is captured on its second use; see
-#: :mod:`toolkit.mpm.graph_cache`).
+#: gradient; repeated runs differ by up to 30 %): captured is 1.1-1.7x faster on 4k nodes and
+#: 1.4-1.7x on 8k, 0.8-1.1x near 13k, and 0.2-0.7x on 162k nodes, where the particles' box is a
+#: small part of the grid. A discovery test scene (about 5.7k nodes): base fit 29.8 -> 25.8 s,
+#: discovery 51.5 -> 26.4 s, with bit-identical results (a chain is captured on its second use;
+#: see :mod:`toolkit.mpm.graph_cache`).
 CPU_GRAPH_MAX_NODES = 8192
 
 
@@ -204,10 +205,10 @@ def captures_graphs(mode: bool | str, device: str, deterministic: bool, nodes: i
     the graph, so the memory grows with the substeps per frame (45 GB for a 49k-particle truth at
     306 substeps per frame, against under 1 GB launched one by one). On the CPU, where a kernel runs
     on one thread and ``deterministic`` allocates nothing, it captures when the grid has at most
-    :data:`CPU_GRAPH_MAX_NODES` nodes (``nodes``; ``None``: not known yet, no capture). A CPU replay skips the Python cost of packing each launch's
-    arguments, but a captured grid update visits every node, where launched one by one it visits
-    only the box the particles reach; on a small grid the first saving is larger. ``True``/``False``
-    are obeyed.
+    :data:`CPU_GRAPH_MAX_NODES` nodes (``nodes``; ``None``: not known yet, no capture). A CPU
+    replay skips the Python cost of packing each launch's arguments, but a captured grid update
+    visits every node, where launched one by one it visits only the box the particles reach; on a
+    small grid the first saving is larger. ``True``/``False`` are obeyed.
     """
     if mode != "auto":
         return bool(mode)

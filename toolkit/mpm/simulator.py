@@ -716,7 +716,8 @@ class MPMSimulator:
         every Warp module of the process on a cold kernel cache."""
         return wp.ScopedCapture(device=self.device, force_module_load=str(self.device).startswith("cuda"))
 
-    def _run_substeps(self, a, b, grid, args, first: int, length: int, status, tracers, graphs: dict | None):
+    def _run_substeps(self, a, b, grid, args, first: int, length: int, status, tracers,
+                      graphs: Optional[GraphCache]):
         """Run ``length`` substeps from state ``a`` (frame-local index ``first``); returns the new (a, b).
 
         With ``graphs`` (a dict owned by the caller) the chain is captured once per

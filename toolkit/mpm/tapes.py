@@ -52,6 +52,8 @@ class KeptTapes:
         self.n = n
         self.pools: dict[int, TapedChunk] = {}
         self.tapes: dict[int, wp.Tape] = {}
+        #: chunk indices whose tape was recorded by a captured graph (held by the graph cache)
+        self.captured: set[int] = set()
         self.generation = -1
         self.inputs: Optional[tuple] = None
 
@@ -84,8 +86,10 @@ class KeptTapes:
         self.generation = generation
         self.inputs = inputs
         self.tapes = {}
+        self.captured = set()
 
-    def forward_chunk(self, index: int, state, args: tuple, first: int, length: int, status, graphs: Optional["GraphCache"]) -> None:
+    def forward_chunk(self, index: int, state, args: tuple, first: int, length: int, status,
+                      graphs: Optional["GraphCache"]) -> None:
         """Run chunk ``index`` (``length`` substeps from frame-local substep ``first``) from
         ``state`` on its own buffers under a tape, and write the end state back into ``state``."""
         sim = self.sim
@@ -111,6 +115,7 @@ class KeptTapes:
                                            args[1], id(args[2]), id(args[3]), args[4])
         if key is None or not graphs.should_capture(key):
             self.tapes[index] = body()
+            self.captured.discard(index)
             return
         if key not in graphs:
             with sim.capture() as capture:
@@ -119,6 +124,7 @@ class KeptTapes:
         graph, tape = graphs[key]
         wp.capture_launch(graph)
         self.tapes[index] = tape
+        self.captured.add(index)
 
     def backward_chunk(self, index: int, carry: Sequence, graphs: Optional["GraphCache"]) -> None:
         """The adjoint of chunk ``index``: ``carry`` holds the gradient of its end state on entry
@@ -131,13 +137,15 @@ class KeptTapes:
             for dst, src in zip(carry, pool.states[0].arrays()):
                 wp.copy(dst, src.grad)
 
-        key = None if graphs is None else ("tape_backward", index, id(tape), id(carry[0]))
+        # only a captured forward's tape is used again; a tape recorded launch by launch is new
+        # on every pass, and its id may be a dead tape's
+        key = None if graphs is None or index not in self.captured else ("tape_backward", index, id(tape), id(carry[0]))
         if key is None or not graphs.should_capture(key):
             body()
             return
         if key not in graphs:
             with self.sim.capture() as capture:
                 body()
-            graphs[key] = capture.graph
-        wp.capture_launch(graphs[key])
+            graphs[key] = (capture.graph, tape)  # the entry keeps the tape, so its id stays its own
+        wp.capture_launch(graphs[key][0])
 
