@@ -281,6 +281,32 @@ def test_bad_camera_index_is_named():
         Cameras(K0, w2c, 32, 32)
 
 
+def test_a_checked_camera_is_checked_again_after_any_change(monkeypatch):
+    """Renderers validate on every call; unchanged cameras are checked once, and an in-place edit,
+    new tensors or new planes are checked again."""
+    cam = Cameras(K0, torch.eye(4).repeat(2, 1, 1), 32, 32)
+    calls = []
+    check = Cameras._check
+    monkeypatch.setattr(Cameras, "_check", lambda self: (calls.append(1), check(self)))
+    cam.validate()
+    cam[1].validate()  # a slice holds new tensors: checked
+    assert len(calls) == 1
+    cam.validate()
+    assert len(calls) == 1  # unchanged: not checked again
+    cam.w2c[1, :3, :3] *= 2.0  # in place: the version counter moved
+    with pytest.raises(ValueError, match="camera index 1 is not orthonormal"):
+        cam.validate()
+    cam.w2c = torch.eye(4).repeat(2, 1, 1)
+    cam.validate()
+    cam.K[0, 0, 0] = -1.0  # K of one camera was expanded to the batch: a write through the view is seen
+    with pytest.raises(ValueError, match="must be positive"):
+        cam.validate()
+    cam.K = torch.tensor(K0).repeat(2, 1, 1)
+    cam.near, cam.far = 5.0, 1.0
+    with pytest.raises(ValueError, match="near must be < far"):
+        cam.validate()
+
+
 @pytest.mark.parametrize(
     "K, match",
     [

@@ -196,7 +196,19 @@ class Cameras:
         return cam
 
     def validate(self) -> None:
-        """Raise ``ValueError`` if any camera is malformed (see the class docstring)."""
+        """Raise ``ValueError`` if any camera is malformed (see the class docstring).
+
+        Renderers call this on every render. A check that passed is remembered with the tensors it
+        checked and their version counters (bumped by any in-place change), so the same unchanged
+        cameras are checked once; new tensors, an in-place edit or a new near/far check again."""
+        checked = getattr(self, "_checked", None)
+        if (checked is not None and checked[0] is self.K and checked[1] == self.K._version and checked[2] is self.w2c
+                and checked[3] == self.w2c._version and checked[4:] == (self.near, self.far)):
+            return
+        self._check()
+        self._checked = (self.K, self.K._version, self.w2c, self.w2c._version, self.near, self.far)
+
+    def _check(self) -> None:
         K, w2c = self.K.detach(), self.w2c.detach()
         if K.shape[0] == 0:
             raise ValueError("Cameras needs at least one camera, got an empty batch (B = 0)")
