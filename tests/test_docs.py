@@ -2,14 +2,14 @@
 
 Convention (docs/README.md): on every Markdown page under ``docs/``, each fenced code block whose
 language is exactly ``python`` is executed, in page order, in one fresh namespace per page, in a
-fresh interpreter, in a temporary working directory, on the CPU. Python that must not run (GPU
+fresh process (forked from one that has imported the heavy libraries and run nothing else:
+`tests/page_runner.py`), in a temporary working directory, on the CPU. Python that must not run (GPU
 only, needs a download, illustrates a file) goes in a ``{code-block} python`` directive instead;
 those blocks are only compiled, so they at least stay valid syntax.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import subprocess
@@ -133,20 +133,12 @@ def test_non_executed_python_compiles(page: Path):
             compile("\n" * (block.line - 1) + block.code, str(page), "exec")
 
 
-# Runs in a fresh interpreter: a page's code gets a clean module namespace (its functions can be
-# Warp functions: they are compiled with the page as their source file, at the page's line
-# numbers, so Warp and inspect find their source) and cannot leak registrations, Warp settings
-# or the working directory into the test process or into other pages.
-_RUNNER = r"""
-import json, sys, types
-page, blocks_file = sys.argv[1], sys.argv[2]
-main = types.ModuleType("__main__")
-main.__file__ = page
-sys.modules["__main__"] = main
-for line, code in json.load(open(blocks_file)):
-    print(f"--- {page}:{line}", flush=True)
-    exec(compile("\n" * (line - 1) + code, page, "exec"), main.__dict__)
-"""
+# Runs in a fresh process (tests/page_runner.py: forked from one that has imported torch,
+# Lightning and Warp and run nothing else, or a new interpreter where fork is missing): a page's
+# code gets a clean module namespace (its functions can be Warp functions: they are compiled with
+# the page as their source file, at the page's line numbers, so Warp and inspect find their
+# source) and cannot leak registrations, Warp settings or the working directory into the test
+# process or into other pages.
 
 
 def _cpu_env() -> dict[str, str]:
@@ -160,20 +152,33 @@ def _cpu_env() -> dict[str, str]:
 RUNNABLE = [p for p in PAGES if any(b.runs for b in extract_blocks(p.read_text()))]
 
 
+@pytest.fixture(scope="session")
+def page_runner():
+    """One zygote per test worker, started at the first page it runs (None without ``os.fork``)."""
+    if not hasattr(os, "fork"):
+        yield None
+        return
+    from tests.page_runner import PageRunner
+
+    runner = PageRunner(_cpu_env(), ROOT)
+    yield runner
+    runner.close()
+
+
 @pytest.mark.parametrize("page", RUNNABLE, ids=[str(p.relative_to(DOCS)) for p in RUNNABLE])
-def test_page_code_runs(page: Path, tmp_path: Path):
+def test_page_code_runs(page: Path, tmp_path: Path, page_runner):
+    from tests.page_runner import run_page_fresh
+
     blocks = [(b.line, b.code) for b in extract_blocks(page.read_text()) if b.runs]
-    blocks_file = tmp_path / "blocks.json"
-    blocks_file.write_text(json.dumps(blocks))
     work = tmp_path / "work"
     work.mkdir()
-    proc = subprocess.run(
-        [sys.executable, "-c", _RUNNER, str(page), str(blocks_file)],
-        cwd=work, env=_cpu_env(), capture_output=True, text=True, timeout=PAGE_TIMEOUT_S,
-    )
-    if proc.returncode != 0:
-        out = (proc.stdout[-4000:] + "\n" + proc.stderr[-8000:]).strip()
-        pytest.fail(f"the code of {page.relative_to(ROOT)} failed (exit {proc.returncode}):\n{out}")
+    if page_runner is not None:
+        code, out, err = page_runner.run(page, blocks, work, PAGE_TIMEOUT_S)
+    else:
+        code, out, err = run_page_fresh(page, blocks, work, _cpu_env(), PAGE_TIMEOUT_S)
+    if code != 0:
+        text = (out[-4000:] + "\n" + err[-8000:]).strip()
+        pytest.fail(f"the code of {page.relative_to(ROOT)} failed (exit {code}):\n{text}")
 
 
 @pytest.mark.slow
@@ -205,3 +210,27 @@ def test_sphinx_build_has_no_warnings(tmp_path: Path):
     for name in COMMANDS:
         assert f'id="projo4d-{name}"' in cli_page, name
     assert "--model.curriculum" in cli_page and "usage: projo4d run" in cli_page
+
+
+def test_page_runner_isolates_pages_and_reports_failures(page_runner, tmp_path: Path):
+    """What one page sets or registers does not reach the next; a failure names the page's line;
+    an exit status and a timeout come back as the exit code."""
+    if page_runner is None:
+        pytest.skip("no os.fork here: pages run in new interpreters")
+
+    def run(name: str, blocks: list, timeout: float = 120):
+        work = tmp_path / name / "work"
+        work.mkdir(parents=True)
+        return page_runner.run(tmp_path / f"{name}.md", blocks, work, timeout)
+
+    leak = "import os, toolkit\ntoolkit._leaked = 1\nos.environ['PAGE_LEAK'] = '1'\nprint(os.getcwd())\n"
+    code, out, _ = run("a", [(3, leak)])
+    assert code == 0 and out.splitlines()[-1] == str(tmp_path / "a" / "work")
+    check = ("import os, sys, toolkit\nassert not hasattr(toolkit, '_leaked') and 'PAGE_LEAK' not in os.environ\n"
+             "assert __name__ == '__main__' and __file__.endswith('b.md') and sys.modules['__main__'].__file__ == __file__\n")
+    assert run("b", [(1, check)])[0] == 0
+    code, _, err = run("c", [(1, "x = 1\n"), (7, "\nraise ValueError('boom')\n")])
+    assert code == 1 and "ValueError: boom" in err and 'c.md", line 8' in err
+    assert run("d", [(1, "import sys\nsys.exit(3)\n")])[0] == 3
+    assert run("e", [(1, "import time\ntime.sleep(60)\n")], timeout=1)[0] == -9
+    assert run("f", [(1, "print('after a kill')\n")])[1].splitlines()[-1] == "after a kill"
