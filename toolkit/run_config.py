@@ -1,10 +1,10 @@
 """The ``run:`` / ``model:`` / ``trainer:`` config layout of ``configs/``, read by ``projo4d run``.
 
 One YAML file serves both commands: ``projo4d fit`` (LightningCLI) reads ``model:`` and
-``trainer:``; ``projo4d run`` reads all three sections into a :class:`~toolkit.pipeline.RunSettings`.
+``trainer:``; ``projo4d run`` reads all three sections into a :class:`~toolkit.run_settings.RunSettings`.
 Nothing is dropped: every key is either carried or refused.
 
-* ``run:`` -- any :class:`~toolkit.pipeline.RunSettings` field (stage 0, cameras, n_train, ...).
+* ``run:`` -- any :class:`~toolkit.run_settings.RunSettings` field (stage 0, cameras, n_train, ...).
 * ``model:`` -- any :class:`~toolkit.physics.InversePhysicsModule` argument except
   ``input_path`` (the pipeline writes the physics input). The arguments RunSettings has fields for
   (:data:`RUN_MODEL_KEYS`) go to those fields; the others (:data:`MODULE_OPTIONS`: ``effects``,
@@ -112,7 +112,7 @@ def settings_from_sections(cfg: Mapping, path: Any) -> dict:
 def check_run_section(run: Any, where: Any = "config") -> None:
     """Check the ``run:`` section of a config where ``projo4d fit`` reads it (it carries the
     pipeline's settings for ``projo4d run`` and ``projo4d stage0``): a mapping whose keys are
-    :class:`~toolkit.pipeline.RunSettings` fields. The values are checked by ``projo4d run``
+    :class:`~toolkit.run_settings.RunSettings` fields. The values are checked by ``projo4d run``
     against its scene; here only the keys, so one file means the same to every command.
 
     Raises:

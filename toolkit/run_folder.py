@@ -64,7 +64,7 @@ def scene_fingerprint(root: str | Path) -> str:
 
 
 def run_identity(settings, stage: str = "run") -> dict:
-    """The identity of a :class:`~toolkit.pipeline.RunSettings`: scene fingerprint and settings.
+    """The identity of a :class:`~toolkit.run_settings.RunSettings`: scene fingerprint and settings.
 
     ``stage="stage0"``: only the :data:`STAGE0_SETTINGS`, marked ``"stage": "stage0"``.
     """

@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SettingsError", "validate_run_settings", "check_device"]
+__all__ = ["SettingsError", "validate_run_settings", "check_plain_fields", "check_device"]
 
 #: the most optimizer iterations a curriculum may have in all
 _MAX_ITERATIONS = 1_000_000
@@ -75,19 +75,10 @@ def _writable(out: Path) -> None:
         raise SettingsError("out", str(out), f"{probe} is not writable")
 
 
-def validate_run_settings(s) -> dict:
-    """Validate a :class:`~toolkit.pipeline.RunSettings` against its scene; raises SettingsError.
-
-    Returns facts the run reuses: ``device``, ``n_train``, ``cameras`` (0-based), ``n_frames``.
-    """
-    from materials import get_material
-    from toolkit.data import load_scene
-    from toolkit.data.datamodule import resolve_cameras
-    from toolkit.mpm import SimConfig
-    from toolkit.scene.continuum import ContinuumConfig
-
-    scene_dir = Path(s.scene)
-    if not scene_dir.is_dir():
+def check_plain_fields(s) -> None:
+    """The checks of :func:`validate_run_settings` that read nothing but the settings and whether
+    the scene folder exists (no torch, no scene contents): a typo is reported at once."""
+    if not Path(s.scene).is_dir():
         raise SettingsError("scene", str(s.scene), "this folder does not exist")
     if s.geometry not in ("stage0", "oracle"):
         raise SettingsError("geometry", s.geometry, "expected 'stage0' or 'oracle'")
@@ -99,6 +90,21 @@ def validate_run_settings(s) -> dict:
         raise SettingsError("checkpoint_every", s.checkpoint_every, "expected an integer >= 0 (0: stage ends only)")
     if not isinstance(s.lambda_geometry, (int, float)) or not s.lambda_geometry >= 0:
         raise SettingsError("lambda_geometry", s.lambda_geometry, "expected a number >= 0")
+
+
+def validate_run_settings(s) -> dict:
+    """Validate a :class:`~toolkit.run_settings.RunSettings` against its scene; raises SettingsError.
+
+    Returns facts the run reuses: ``device``, ``n_train``, ``cameras`` (0-based), ``n_frames``.
+    """
+    from materials import get_material
+    from toolkit.data import load_scene
+    from toolkit.data.datamodule import resolve_cameras
+    from toolkit.mpm import SimConfig
+    from toolkit.scene.continuum import ContinuumConfig
+
+    check_plain_fields(s)
+    scene_dir = Path(s.scene)
     device = check_device(str(s.device))
     _writable(Path(s.out))
 

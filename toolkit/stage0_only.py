@@ -1,6 +1,6 @@
 """Stage 0 on its own (``projo4d stage0``): the 4D Gaussians of a scene, in a run folder.
 
-:func:`run_stage0` takes the same :class:`~toolkit.pipeline.RunSettings` as
+:func:`run_stage0` takes the same :class:`~toolkit.run_settings.RunSettings` as
 :func:`~toolkit.pipeline.run_pipeline`, checks all of them the same way before any work
 (:mod:`toolkit.run_validation`), claims the folder with a stage-0 identity (the scene and
 :data:`~toolkit.run_folder.STAGE0_SETTINGS`, see :mod:`toolkit.run_folder`) and runs only stage 0:
@@ -29,7 +29,7 @@ def run_stage0(settings, mode: str = "auto") -> dict:
     """Run stage 0 of ``settings`` into ``settings.out``; returns (and writes) its summary.
 
     Args:
-        settings: a :class:`~toolkit.pipeline.RunSettings` (``geometry`` must be ``"stage0"``).
+        settings: a :class:`~toolkit.run_settings.RunSettings` (``geometry`` must be ``"stage0"``).
         mode: ``"auto"`` (resume the same stage 0, refuse another), ``"resume"`` or ``"overwrite"``
             (see :func:`~toolkit.run_folder.claim_run_folder`).
 

@@ -9,7 +9,7 @@ with two threads each they finished in 4.3).
 Precedence of the thread count (first one given wins):
 
 1. the run's own setting: ``projo4d run --threads N`` or ``threads: N`` in its config
-   (:attr:`toolkit.pipeline.RunSettings.threads`);
+   (:attr:`toolkit.run_settings.RunSettings.threads`);
 2. ``PROJO4D_THREADS=N`` in the environment (the benchmark's executors set it for each job);
 3. the default: the cores this process may run on (its affinity mask, ``os.sched_getaffinity``;
    ``taskset`` and cpusets shrink it, a CPU quota does not) divided by

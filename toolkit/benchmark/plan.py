@@ -198,7 +198,7 @@ class Job:
         folder: where the job writes (absolute).
         scene, material, cameras, strategy, variant: what it is about (``None`` where not applicable).
         depends: ids of the jobs that must be done first.
-        settings: :class:`~toolkit.pipeline.RunSettings` fields (``prepare``, ``fit``) or
+        settings: :class:`~toolkit.run_settings.RunSettings` fields (``prepare``, ``fit``) or
             ``{"spec": ...}`` (``generate``).
         fingerprint: hash of what decides the job's result (its marker must match to be skipped).
         extra: ``physics_input`` (the shared file, ``fit``), ``periodic_eval``,

@@ -25,7 +25,7 @@ DEMO_SCENE = dict(
     material="neo_hookean", params={"E": 5e4, "nu": 0.3}, position=(0.0, 0.17, 0.0), v0=(0.5, -1.2, 0.2),
     n_frames=12, n_train_frames=9, seed=0,
 )
-#: the run settings (toolkit.pipeline.RunSettings fields; mirrors configs/demo.yaml)
+#: the run settings (toolkit.run_settings.RunSettings fields; mirrors configs/demo.yaml)
 DEMO_RUN = dict(
     cameras="sparse", stage0="tiny", material="neo_hookean", curriculum="XAS:25@3/3x3,XA[S]M:40/3x7",
     sim={"dx": 0.02, "substeps": 40, "auto_dt_halving": True},

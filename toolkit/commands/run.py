@@ -39,7 +39,7 @@ def _threads_arg(text: str) -> int:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from toolkit.pipeline import RunSettings
+    from toolkit.run_settings import RunSettings
 
     d = {name: f.default for name, f in RunSettings.__dataclass_fields__.items()}  # shown as "(default: ...)"
     parser.add_argument("scene", nargs="?", help="scene folder (PAC-NeRF, Spring-Gaus, Vid2Sim GSO or generated)")
@@ -100,9 +100,9 @@ def settings_from_sections(cfg: dict, path) -> dict:
 
 
 def settings_from_args(args: argparse.Namespace, command: str = "run"):
-    """The :class:`~toolkit.pipeline.RunSettings` of ``projo4d run`` (or ``stage0``, which takes the
+    """The :class:`~toolkit.run_settings.RunSettings` of ``projo4d run`` (or ``stage0``, which takes the
     same arguments: ``command`` names it in messages): the config file, then the flags over it."""
-    from toolkit.pipeline import RunSettings
+    from toolkit.run_settings import RunSettings
 
     base: dict = {}
     if args.config:
@@ -182,11 +182,13 @@ def _recorded(out) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from toolkit.pipeline import format_summary, run_pipeline
-
     if args.resume and args.overwrite:
         raise SettingsError("--resume/--overwrite", True, "give one of them, not both")
     mode = "resume" if args.resume else "overwrite" if args.overwrite else "auto"
-    summary = run_pipeline(settings_from_args(args), mode=mode)
+    settings = settings_from_args(args)
+    settings.check_fields()  # a typo is reported before torch and Lightning load (seconds)
+    from toolkit.pipeline import format_summary, run_pipeline
+
+    summary = run_pipeline(settings, mode=mode)
     print(format_summary(summary))
     return 0

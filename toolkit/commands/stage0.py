@@ -27,11 +27,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from toolkit.stage0_only import format_stage0_summary, run_stage0
-
     if args.resume and args.overwrite:
         raise SettingsError("--resume/--overwrite", True, "give one of them, not both")
     mode = "resume" if args.resume else "overwrite" if args.overwrite else "auto"
-    summary = run_stage0(run_command.settings_from_args(args, "stage0"), mode=mode)
+    settings = run_command.settings_from_args(args, "stage0")
+    settings.check_fields()  # a typo is reported before torch and Lightning load
+    from toolkit.stage0_only import format_stage0_summary, run_stage0
+
+    summary = run_stage0(settings, mode=mode)
     print(format_stage0_summary(summary))
     return 0

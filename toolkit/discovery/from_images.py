@@ -42,7 +42,7 @@ __all__ = ["STAGE0_CURRICULA", "STAGE0_SCHEDULES", "observed_scene", "stage0_phy
 #: curricula of :data:`toolkit.discovery.hidden.SIZES` with ``X`` removed)
 STAGE0_CURRICULA = {"tiny": "AS:20@3,ASM:80", "full": "AS:60@3,ASM:300"}
 
-#: stage-0 schedules per hidden-scene size (:attr:`toolkit.pipeline.RunSettings.stage0`). The
+#: stage-0 schedules per hidden-scene size (:attr:`toolkit.run_settings.RunSettings.stage0`). The
 #: ``tiny`` preset as such diverged on the tiny slide (32 px, 3 fitted cameras, the box moving
 #: 6 cm a frame): the deformation sent the Gaussians metres away from frame 1 on, no Gaussian
 #: centre was covered in every view and the continuum had no surface after frame 0. With the
@@ -69,7 +69,7 @@ def observed_scene(hs, scene_root: Union[str, Path], out: Union[str, Path], came
             ``r_<camera>_<frame>.png``).
         out: folder for the observed scene; links already there are kept and
             ``all_data.json`` is written atomically, so a call on a finished run changes nothing.
-        cameras: the fitting cameras, as in :attr:`toolkit.pipeline.RunSettings.cameras`.
+        cameras: the fitting cameras, as in :attr:`toolkit.run_settings.RunSettings.cameras`.
 
     Returns:
         The folder that stage 0 should read.
@@ -119,7 +119,7 @@ def stage0_physics_input(hs, scene_root: Union[str, Path], run_dir: Union[str, P
         run_dir: run folder; ``run_dir/stage0``, ``run_dir/continuum`` and
             ``run_dir/physics_input.pt`` are written, and reused when present.
         stage0: the stage-0 schedule (``"tiny"``, ``"full"`` or a dict, as
-            :attr:`toolkit.pipeline.RunSettings.stage0`); default :data:`STAGE0_SCHEDULES` of
+            :attr:`toolkit.run_settings.RunSettings.stage0`); default :data:`STAGE0_SCHEDULES` of
             the scene's size.
         cameras: fitting cameras (``"sparse"``: 3 of the scene's cameras; the others are
             held out and judge the candidates).
