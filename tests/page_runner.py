@@ -64,7 +64,7 @@ for request in sys.stdin:
                 os.close(f)
             null = os.open(os.devnull, os.O_RDONLY)
             os.dup2(null, 0)
-            sys.stdin = open(os.devnull)
+            sys.stdin = open(os.devnull)  # not the zygote's buffered request pipe
             run_blocks(req["page"], req["blocks"])
             status = 0
         except SystemExit as exc:
@@ -106,9 +106,11 @@ class PageRunner:
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log)
         self._lines: queue.Queue = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
-        first = self._lines.get(timeout=300)
-        if first != "ready":
-            raise RuntimeError(f"the page zygote did not start: {Path(self._log.name).read_text()[-4000:]}")
+        line = ""
+        while line != "ready":  # a preloaded module may print on import
+            line = self._lines.get(timeout=300)
+            if line is None:
+                raise RuntimeError(f"the page zygote did not start: {Path(self._log.name).read_text()[-4000:]}")
 
     def _read(self) -> None:
         for line in self._proc.stdout:

@@ -16,7 +16,7 @@ __all__ = ["RunSettings"]
 
 @dataclass
 class RunSettings:
-    """Settings of :func:`run_pipeline`.
+    """Settings of :func:`toolkit.pipeline.run_pipeline`.
 
     Attributes:
         scene: scene folder (any supported layout, see :func:`toolkit.data.load_scene`).
@@ -97,16 +97,9 @@ class RunSettings:
         Raises:
             toolkit.run_validation.SettingsError: naming the field, the value and what is valid.
         """
-        from toolkit.run_config import check_model_options
-        from toolkit.run_validation import SettingsError, check_plain_fields
+        from toolkit.run_validation import check_plain_fields
 
-        if self.threads is not None:  # needs no scene: checked first
-            from toolkit.threads import parse_count
-
-            parse_count(self.threads, "RunSettings.threads (--threads)")
-        check_model_options(self.model_options)
-        if not (isinstance(self.refine_grid, bool) or self.refine_grid == "auto"):
-            raise SettingsError("refine_grid", self.refine_grid, "true, false or 'auto'")
+        self._check_options()
         check_plain_fields(self)
 
     def validate(self) -> dict:
@@ -117,5 +110,17 @@ class RunSettings:
         """
         from toolkit.run_validation import validate_run_settings
 
-        self.check_fields()
-        return validate_run_settings(self)
+        self._check_options()
+        return validate_run_settings(self)  # the plain fields first, then the scene's contents
+
+    def _check_options(self) -> None:
+        from toolkit.run_config import check_model_options
+        from toolkit.run_validation import SettingsError
+
+        if self.threads is not None:  # needs no scene: checked first
+            from toolkit.threads import parse_count
+
+            parse_count(self.threads, "RunSettings.threads (--threads)")
+        check_model_options(self.model_options)
+        if not (isinstance(self.refine_grid, bool) or self.refine_grid == "auto"):
+            raise SettingsError("refine_grid", self.refine_grid, "true, false or 'auto'")

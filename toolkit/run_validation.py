@@ -97,13 +97,13 @@ def validate_run_settings(s) -> dict:
 
     Returns facts the run reuses: ``device``, ``n_train``, ``cameras`` (0-based), ``n_frames``.
     """
+    check_plain_fields(s)  # before the heavy imports: a typo is reported at once
     from materials import get_material
     from toolkit.data import load_scene
     from toolkit.data.datamodule import resolve_cameras
     from toolkit.mpm import SimConfig
     from toolkit.scene.continuum import ContinuumConfig
 
-    check_plain_fields(s)
     scene_dir = Path(s.scene)
     device = check_device(str(s.device))
     _writable(Path(s.out))
