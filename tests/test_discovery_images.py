@@ -13,7 +13,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 # one worker builds each scene once (the fixture caches per effect; two workers would build twice)
 pytestmark = [pytest.mark.xdist_group("discovery_images"), pytest.mark.usefixtures("one_torch_thread")]
@@ -156,25 +155,3 @@ def test_discovered_model_saved_as_a_config_replays(runs, tmp_path):
     theirs = new.predict_trajectory()["positions"]
     err = float((theirs - ours).abs().max())
     assert err < 1e-3, err
-
-
-@pytest.mark.slow
-def test_a_resting_body_keeps_no_initial_velocity_into_the_ground(runs):
-    """The slide starts resting on the slip ground as stage 0 sees it: the module holds v0's
-    normal component at zero (issue #24), and so does the library, whose refits never move it
-    (group ``held``) and whose forward model drops it even when a caller writes a value there."""
-    lib = runs("ground_friction").result.lib
-    assert lib.contact_normal == (0.0, 1.0, 0.0)
-    assert "v0.y" not in lib.base_names and "v0.x" in lib.base_names and lib.params_of("held") == ["v0.y"]
-    q = lib.q0.copy()
-    pushed = q.copy()
-    pushed[lib.index_of["v0.y"]] = -0.5
-    assert lib.physical(pushed)["v0"][1] == 0.0
-    _, a = lib.trajectory(q, [1, 3])
-    _, b = lib.trajectory(pushed, [1, 3])
-    assert torch.equal(a, b)
-    # a push along the ground does move the body (the comparison can fail)
-    sideways = q.copy()
-    sideways[lib.index_of["v0.x"]] += 0.5
-    _, c = lib.trajectory(sideways, [1, 3])
-    assert float((c - a).abs().max()) > 0.01
