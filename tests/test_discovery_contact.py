@@ -14,7 +14,7 @@ import dataclasses
 import pytest
 import torch
 
-from tests.uncertainty_scenes import SLIDE_TRUTH, slide_scene, slide_sim
+from tests.uncertainty_scenes import slide_input, slide_module_at_truth, slide_sim
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -22,12 +22,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 @pytest.fixture(scope="module")
 def slide_library(tmp_path_factory):
     from toolkit.discovery.library import LibraryModel
-    from toolkit.physics import InversePhysicsModule
-    from toolkit.physics.oracle import oracle_input
 
-    inp = oracle_input(slide_scene(tmp_path_factory.mktemp("slide")), particle_spacing=0.02)
-    module = InversePhysicsModule(inp, curriculum="XAS:1,XASM:1", sim=slide_sim(), renderer="warp", optimize_params=["E"],
-                                  initial_params=dict(SLIDE_TRUTH), material_init="given")
+    module = slide_module_at_truth(slide_input(tmp_path_factory.mktemp("slide")))
     return LibraryModel(module, candidates=["ground_friction", "air_drag", "extra_acceleration"])
 
 
@@ -58,11 +54,8 @@ def test_on_a_ground_it_may_leave_every_component_of_v0_is_refitted(slide_librar
     no contact normal, all three components of v0 are refitted, and a push along the normal
     changes the motion."""
     from toolkit.discovery.library import LibraryModel
-    from toolkit.physics import InversePhysicsModule
 
-    sim = dataclasses.replace(slide_sim(), boundary="separate")
-    module = InversePhysicsModule(slide_library.input, curriculum="XAS:1,XASM:1", sim=sim, renderer="warp",
-                                  optimize_params=["E"], initial_params=dict(SLIDE_TRUTH), material_init="given")
+    module = slide_module_at_truth(slide_library.input, dataclasses.replace(slide_sim(), boundary="separate"))
     lib = LibraryModel(module, candidates=["ground_friction"])
     assert module.contact_normal is None and lib.contact_normal is None
     assert {"v0.x", "v0.y", "v0.z"} <= set(lib.base_names) and lib.params_of("held") == []

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from tests.physics_fixtures import TRUTH, V0, fit_sim, tiny_scene
-from tests.uncertainty_scenes import SLIDE_TRUTH, SLIDE_V0, slide_scene, slide_sim, toss_module_at_truth
+from tests import uncertainty_scenes
+from tests.uncertainty_scenes import SLIDE_TRUTH, SLIDE_V0, slide_sim, toss_module_at_truth
 from toolkit.mpm import SimConfig
 from toolkit.physics import InversePhysicsModule
 from toolkit.physics.contact import ground_contact_normal, project_off_ground
@@ -22,7 +23,7 @@ DETERMINED, WEAK, NOT_DETERMINED = LABELS
 
 @pytest.fixture(scope="module")
 def slide_input(tmp_path_factory):
-    return oracle_input(slide_scene(tmp_path_factory.mktemp("slide")), particle_spacing=0.02)
+    return uncertainty_scenes.slide_input(tmp_path_factory.mktemp("slide"))
 
 
 @pytest.fixture(scope="module")

@@ -31,6 +31,23 @@ def slide_sim() -> SimConfig:
     return SimConfig(dx=0.04, substeps=30, auto_dt_halving=True, boundary="slip")
 
 
+def slide_input(root: Path):
+    """The slide's oracle physics input (true geometry, particles at 2 cm), generating the scene in
+    ``root`` if it is not there."""
+    from toolkit.physics.oracle import oracle_input
+
+    return oracle_input(slide_scene(root), particle_spacing=0.02)
+
+
+def slide_module_at_truth(inp, sim: SimConfig | None = None):
+    """An E module on the slide's input at the true material, not fitted (``sim``: default
+    :func:`slide_sim`); v0 starts at the module's default."""
+    from toolkit.physics import InversePhysicsModule
+
+    return InversePhysicsModule(inp, curriculum="XAS:1,XASM:1", sim=sim or slide_sim(), renderer="warp",
+                                optimize_params=["E"], initial_params=dict(SLIDE_TRUTH), material_init="given")
+
+
 def toss_module_at_truth(inp):
     """An E-and-v0 module on the falling box of ``tests.physics_fixtures`` (its oracle input ``inp``),
     set to the true E and v0 without fitting (start E 1e4, no coarse search)."""
