@@ -236,12 +236,15 @@ def test_observed_motion_of_generated_tosses(toss_libraries):
 def test_a_drag_absorbed_by_the_base_fit_is_refitted_from_the_observed_rate(toss_libraries):
     """The tiny toss with a hidden linear drag of 2.5 /s: the observed track measures the rate
     within 0.3 /s. The base fit absorbs part of the drag into the throw, so the refit from the
-    ranking's prediction (here no drag at all) stops at about half the rate (1.2 /s in a probe),
-    while the refit from the observed rate reaches it within 0.5 /s. Both lower the objective
-    below the base's; the valley is flat (the two ends differ by 0.5 % in a probe, under the 1 %
-    a second start needs to replace the first), so the decision between the two starts is the
-    rule's: the second replaces the first exactly when it gains more than SECOND_START_MIN_GAIN,
-    and the other start's objective is recorded either way."""
+    ranking's prediction (here no drag at all) stops at about half the rate (1.2 /s), while the
+    refit from the observed rate ends nearer the truth. Both lower the objective below the base's.
+    The valley is flat: the two ends differ by 0.4-0.5 % in objective, under the 1 % a second
+    start needs to replace the first. So where along it the refit from the observed rate stops
+    depends on rounding: 2.5 +- 0.5 /s on earlier CPUs, 3.06 on a 2-core Intel Xeon. The test
+    asserts what the start is for (ending nearer the truth than the prediction's start, and within
+    30 % of it), not a point of the flat valley. The decision between the two starts is the rule's:
+    the second replaces the first exactly when it gains more than SECOND_START_MIN_GAIN, and the
+    other start's objective is recorded either way."""
     from types import SimpleNamespace
 
     from toolkit.discovery.confirm import lm_refit
@@ -255,8 +258,12 @@ def test_a_drag_absorbed_by_the_base_fit_is_refitted_from_the_observed_rate(toss
     free = lib.base_names + lib.params_of("air_drag")
     lib.assign(base.q)
     from_rate = lm_refit(lib, drag_start(lib, base.q, motion), free, "air_drag", iterations=8)
-    assert from_rate.objective < base.objective
-    assert abs(from_rate.q[lib.index_of["air_drag.linear"]] - 2.5) < 0.5, from_rate.q
+    lib.assign(base.q)
+    from_prediction = lm_refit(lib, base.q, free, "air_drag", iterations=8)  # base.q holds no drag
+    assert from_rate.objective < base.objective and from_prediction.objective < base.objective
+    rate, predicted_rate = (r.q[lib.index_of["air_drag.linear"]] for r in (from_rate, from_prediction))
+    assert abs(rate - 2.5) < abs(predicted_rate - 2.5), (rate, predicted_rate)
+    assert abs(rate - 2.5) < 0.3 * 2.5, from_rate.q
     score = SimpleNamespace(name="air_drag", predicted_strength={}, search=None)
     rf = refit_candidate(lib, None, {}, score, base, iterations=8, motion=motion)
     assert rf.objective < base.objective
