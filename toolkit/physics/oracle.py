@@ -33,7 +33,7 @@ def voxel_downsample(points: np.ndarray, spacing: float) -> np.ndarray:
 
 def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse", n_train: int | None = None,
                  particle_spacing: float = 0.01, downscale: int = 1, dx: float | None = None,
-                 **reader_options) -> PhysicsInput:
+                 gaussian_scale: float = 0.6, **reader_options) -> PhysicsInput:
     """A :class:`PhysicsInput` whose geometry is the scene's ground truth.
 
     Args:
@@ -43,6 +43,12 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
         particle_spacing: particles are the ground-truth cloud voxel-downsampled to this pitch (m).
         downscale: integer image downscale factor (cameras scaled to match).
         dx: grid spacing of the fit (m) for the world checks; default ``2 * particle_spacing``.
+        gaussian_scale: each particle's isotropic Gaussian has the standard deviation
+            ``gaussian_scale * particle_spacing``. The default 0.6 covers the body without gaps
+            but renders a silhouette wider than the images' (about 1.4x the mask's area on the
+            64 px suite), and along E the image loss is then flat with its minimum on the soft
+            side (``benchmarks/image_loss_bias.py``; ``docs/limits.md``, "Where the image loss
+            puts E"). Inputs whose thresholds were calibrated with the default keep it.
         **reader_options: passed to the scene's reader (e.g. ``ground_height`` for Spring-Gaus).
 
     Everything is in the canonical world (the reader moved the scene there); ``meta["world"]`` says
@@ -52,6 +58,8 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
     from toolkit.data.exclusion import exclusion_meta
     from toolkit.physics.world_checks import check_world, world_meta
 
+    if not gaussian_scale > 0:
+        raise ValueError(f"gaussian_scale must be > 0 (a fraction of the particle spacing), got {gaussian_scale}")
     scene = load_scene(scene_root, **reader_options)
     gt = scene.ground_truth
     if gt is None or not gt.point_clouds:
@@ -68,7 +76,7 @@ def oracle_input(scene_root: str | Path, cameras: Sequence[int] | str = "sparse"
     n = len(particles)
     gaussians = Gaussians(
         means=torch.from_numpy(particles),
-        log_scales=torch.full((n, 3), math.log(0.6 * particle_spacing)),
+        log_scales=torch.full((n, 3), math.log(gaussian_scale * particle_spacing)),
         quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
         opacity_logits=torch.full((n,), 3.0),
         colors=colors,
