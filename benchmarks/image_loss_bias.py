@@ -98,7 +98,7 @@ def main() -> None:
 
     import torch
 
-    from materials import MaterialError
+    from materials import MaterialError, get_material
     from toolkit.mpm import SimConfig
     from toolkit.physics import InversePhysicsModule
     from toolkit.physics.inputs import PhysicsInput
@@ -107,6 +107,10 @@ def main() -> None:
 
     name = f"{args.family}/{args.index:03d}"
     spec = sample_scene_spec(args.family, args.index, args.seed, args.size, "cpu")
+    try:  # before any generation or simulation
+        p = get_material(spec.material, **spec.material_options).param(args.param)
+    except MaterialError as err:
+        parser.error(f"--param: {err}")
     fit_dx = args.fit_dx or spec.dx
     scene = args.suite / name
     if not (scene / "ground_truth.json").is_file():
@@ -121,10 +125,6 @@ def main() -> None:
     gt = truth_input.ground_truth
     module = InversePhysicsModule(inp, material=gt["material"], initial_params=dict(gt["params"]), v0_init=list(gt["v0"]),
                                   sim=SimConfig(dx=fit_dx, boundary=spec.boundary, auto_dt_halving=True))
-    try:
-        p = module.material.param(args.param)
-    except MaterialError as err:
-        parser.error(f"--param: {err}")
     log_axis = p.transform == "log10"
     offsets = args.offsets or (DEFAULT_OFFSETS if log_axis else [-0.2, -0.1, -0.05, 0.0, 0.05, 0.1])
     index = module.material.param_names.index(args.param)
