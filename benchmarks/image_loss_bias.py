@@ -7,9 +7,10 @@ builds the physics input from the true body (``oracle_input``, its Gaussians at
 one parameter and scores each rollout over the training frames 1..n_train-1 and the fitting
 cameras by:
 
-* ``l1`` and ``dssim``: the fit's image terms (mean absolute error, 1 - SSIM; summed over frames
-  and cameras), and ``mix``: the fit's own blend (``(1 - ssim_weight) l1 + ssim_weight dssim``);
-* ``geometry``: the fit's geometric term against the input's surfaces;
+* ``image`` and ``geometry``: the fit's own loss terms (its image term, ``(1 - ssim_weight) L1 +
+  ssim_weight (1 - SSIM)``, and its geometric term against the input's surfaces), as the coarse
+  search scores a candidate;
+* ``l1`` and ``dssim``: the image term with its SSIM weight at 0 and at 1;
 * ``chamfer_mm``: the particles' mean nearest-neighbour distance to the truth's clouds, both ways.
 
 No optimizer and no coarse search: if the image terms' minimum sits away from the truth while the
@@ -41,35 +42,25 @@ DEFAULT_OFFSETS = [-1.0, -0.75, -0.5, -0.25, -0.125, 0.0, 0.125, 0.25, 0.5]
 
 
 def scores(module, positions, cams: list[int], frames: list[int], clouds: list[np.ndarray]) -> dict:
-    """The image, geometric and particle scores of one rollout ``positions`` (T+1, N, 3)."""
-    import torch
-
+    """The scores of one rollout ``positions`` (T+1, N, 3): the fit's own loss terms
+    (:meth:`~toolkit.physics.InversePhysicsModule.probe_losses` of its material stage: ``image``,
+    ``geometry``), the image term again with its SSIM weight at 0 (``l1``) and 1 (``dssim``), and
+    the particles' Chamfer distance to the truth's clouds (``chamfer_mm``)."""
     from toolkit.metrics import mean_nearest_distance
-    from toolkit.physics.objective import ssim_torch
-
-    x0 = (module.particles0 + module.particle_offset).detach()
-    l1 = dssim = 0.0
-    with torch.no_grad():
-        gaussians = module.gaussians_at(positions[frames], x0, appearance_grad=False)
-        for f, g in zip(frames, gaussians):
-            render = module.renderer(g, module.input.cameras[cams])
-            mask = module.masks[cams, f].float().unsqueeze(-1) / 255.0
-            target = module.images[cams, f].float() / 255.0 * mask
-            l1 += float((render.rgb - target).abs().mean(dim=(1, 2, 3)).sum())
-            dssim += float((1 - ssim_torch(render.rgb, target, reduction="none").reshape(len(cams), -1).mean(1)).sum())
-        geometry = sum(float(module.probe_losses(positions, _geometry_stage(module), cams, [f]).get("geometry", 0.0))
-                       for f in frames)
-    pos = positions.cpu().numpy()
-    chamfer = float(np.mean([mean_nearest_distance(pos[f], clouds[f]) for f in frames]))
-    w = module.ssim_weight
-    return {"l1": l1, "dssim": dssim, "mix": (1 - w) * l1 + w * dssim, "geometry": geometry, "chamfer_mm": 1e3 * chamfer}
-
-
-def _geometry_stage(module):
-    import dataclasses
 
     stage = next(s for s in module.stages if "M" in s.groups)
-    return dataclasses.replace(stage, losses=frozenset({"geometry"}))
+    out = module.probe_losses(positions, stage, cams, frames)
+    weight = module.ssim_weight
+    try:
+        for key, w in (("l1", 0.0), ("dssim", 1.0)):
+            module.ssim_weight = w
+            out[key] = module.probe_losses(positions, stage, cams, frames)["image"]
+    finally:
+        module.ssim_weight = weight
+    pos = positions.cpu().numpy()
+    chamfer = float(np.mean([mean_nearest_distance(pos[f], clouds[f]) for f in frames]))
+    return {"l1": out["l1"], "dssim": out["dssim"], "image": out["image"], "geometry": out.get("geometry", 0.0),
+            "chamfer_mm": 1e3 * chamfer}
 
 
 def main() -> None:
@@ -91,6 +82,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.input is not None and not args.input.is_file():
         parser.error(f"--input: {args.input} is not a file (expected RUN/physics_input.pt)")
+    if args.index < 0:
+        parser.error(f"--index must be >= 0 (the scene's index in its family), got {args.index}")
     if not args.gaussian_scale > 0:
         parser.error(f"--gaussian-scale must be > 0, got {args.gaussian_scale}")
     if args.fit_dx is not None and not args.fit_dx > 0:
@@ -103,10 +96,14 @@ def main() -> None:
     from toolkit.physics import InversePhysicsModule
     from toolkit.physics.inputs import PhysicsInput
     from toolkit.physics.oracle import oracle_input
+    from toolkit.synthetic.errors import SpecError
     from toolkit.synthetic.suite import generate_suite, sample_scene_spec
 
     name = f"{args.family}/{args.index:03d}"
-    spec = sample_scene_spec(args.family, args.index, args.seed, args.size, "cpu")
+    try:
+        spec = sample_scene_spec(args.family, args.index, args.seed, args.size, "cpu")
+    except SpecError as err:
+        parser.error(f"--family: {err}")
     try:  # before any generation or simulation
         p = get_material(spec.material, **spec.material_options).param(args.param)
     except MaterialError as err:
@@ -149,7 +146,7 @@ def main() -> None:
                "seconds": round(time.perf_counter() - t, 1)}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    keys = ("l1", "dssim", "mix", "geometry", "chamfer_mm")
+    keys = ("l1", "dssim", "image", "geometry", "chamfer_mm")
     best = {key: min(rows, key=lambda r: r[key])["offset"] for key in keys}
     spread = {key: round(max(r[key] for r in rows) / max(min(r[key] for r in rows), 1e-12) - 1, 4) for key in keys}
     print(json.dumps({"benchmark": "image_loss_bias", "event": "summary", "scene": name, "param": args.param,
