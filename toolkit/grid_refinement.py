@@ -42,15 +42,22 @@ REFINED_FOLDER = "refined"
 log = logging.getLogger(__name__)
 
 
-def needs_refinement(summary: dict) -> bool:
-    """True when the run's grid check ran and found the estimate grid-dependent (``converged`` False)."""
+def needs_refinement(summary: dict, setting: bool | str = True) -> bool:
+    """Whether the run is fitted again at the grid check's ``fine_dx``: the check ran and found
+    the estimate grid-dependent (``converged`` False), or, with ``setting="always"``, the check ran
+    at all (any verdict; a skipped check means the finer grid does not fit in memory)."""
     grid = summary.get("grid_check") or {}
-    return grid.get("converged") is False and bool(grid.get("fine_dx"))
+    if not grid.get("fine_dx") or "skipped" in grid:
+        return False
+    return setting == "always" or grid.get("converged") is False
 
 
 def refines_on(setting: bool | str, device: str) -> bool:
     """Whether ``RunSettings.refine_grid`` refines a run on ``device`` (``"cpu"``, ``"cuda"``,
-    ``"cuda:N"``) once its grid check has failed: ``"auto"`` on CUDA only."""
+    ``"cuda:N"``) once it needs it (:func:`needs_refinement`): ``"auto"`` on CUDA only; ``True`` and
+    ``"always"`` on any device."""
+    if setting == "always":
+        return True
     if setting == "auto":
         return str(device).startswith("cuda")
     return bool(setting)
@@ -86,7 +93,7 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     from toolkit.pipeline import run_pipeline
     from toolkit.run_folder import claim_run_folder
 
-    if not needs_refinement(summary):
+    if not needs_refinement(summary, s.refine_grid):
         return None
     if not refines_on(s.refine_grid, device):
         log.warning("`--refine-grid` would fit again at dx %g m from this estimate (not by default on %s: about 8x "
@@ -98,8 +105,8 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     stage0 = Path(s.out) / "stage0" if stage0 is None else Path(stage0)
     if stage0.is_dir() and not (out / "stage0").exists():
         os.symlink(os.path.relpath(stage0, out), out / "stage0", target_is_directory=True)
-    log.warning("the grid check failed: fitting again at dx %g m in %s (refine_grid=%s)", child.sim["dx"], out,
-                s.refine_grid)
+    why = "the grid check failed" if summary["grid_check"].get("converged") is False else "refine_grid='always'"
+    log.warning("%s: fitting again at dx %g m in %s (refine_grid=%s)", why, child.sim["dx"], out, s.refine_grid)
     return run_pipeline(child, mode="auto")
 
 

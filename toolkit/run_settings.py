@@ -54,7 +54,9 @@ class RunSettings:
             grid spacing in ``out/refined`` from the estimate, sharing stage 0
             (:mod:`toolkit.grid_refinement`); the summary's ``refined`` holds that run's summary.
             ``"auto"`` (default): on a CUDA device only, where it costs 1.4-3.4x the physics
-            stage (more the fuller the card; 8x on CPU); ``True``: on any device; ``False``: never.
+            stage (more the fuller the card; 8x on CPU); ``True``: on any device; ``False``: never;
+            ``"always"``: every fit whose grid check ran, whatever it found, on any device (the
+            check compares the finer grid's shift with the misfit, not with a parameter's bias).
         threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
             alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
             ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA
@@ -122,5 +124,5 @@ class RunSettings:
 
             parse_count(self.threads, "RunSettings.threads (--threads)")
         check_model_options(self.model_options)
-        if not (isinstance(self.refine_grid, bool) or self.refine_grid == "auto"):
-            raise SettingsError("refine_grid", self.refine_grid, "true, false or 'auto'")
+        if not (isinstance(self.refine_grid, bool) or self.refine_grid in ("auto", "always")):
+            raise SettingsError("refine_grid", self.refine_grid, "true, false, 'auto' or 'always'")

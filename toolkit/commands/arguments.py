@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-__all__ = ["json_arg"]
+__all__ = ["json_arg", "add_refine_grid_argument"]
 
 
 def json_arg(text: str):
@@ -14,3 +14,14 @@ def json_arg(text: str):
         return json.loads(text)
     except json.JSONDecodeError as err:
         raise argparse.ArgumentTypeError(f"not valid JSON: {text!r} ({err.msg})") from None
+
+
+
+def add_refine_grid_argument(parser, help: str) -> None:
+    """``--refine-grid`` (True), ``--refine-grid-always`` (``"always"``) and ``--no-refine-grid``
+    (False) into ``args.refine_grid``; None when none is given (the settings' default)."""
+    parser.add_argument("--refine-grid", dest="refine_grid", action="store_const", const=True, default=None, help=help)
+    parser.add_argument("--refine-grid-always", dest="refine_grid", action="store_const", const="always",
+                        help="fit every run again at half the grid spacing, whatever its grid check found (any device)")
+    parser.add_argument("--no-refine-grid", dest="refine_grid", action="store_const", const=False,
+                        help="never fit again at a finer grid")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.commands.arguments import json_arg
+from toolkit.commands.arguments import add_refine_grid_argument, json_arg
 from toolkit.run_validation import SettingsError
 
 __all__ = ["configure", "run"]
@@ -76,10 +76,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help='JSON ContinuumConfig fields, e.g. \'{"centre_stamp": "ellipsoid", "carve_depth": "opaque"}\' '
                              "(default: GIC's procedure on a lattice at sim.dx / 2)")
     parser.add_argument("--device", help=f"auto, cpu, cuda or cuda:N (default: {d['device']})")
-    parser.add_argument("--refine-grid", action=argparse.BooleanOptionalAction, default=None,
-                        help="when the grid check finds the estimate grid-dependent, fit again at half the grid spacing "
-                             "in OUT/refined, starting from the estimate (default: on CUDA only, where it costs 1.4-3.4x "
-                             "the physics stage, more the fuller the card; about 8x on a CPU)")
+    add_refine_grid_argument(parser, "when the grid check finds the estimate grid-dependent, fit again at half the grid "
+                             "spacing in OUT/refined, starting from the estimate (default: on CUDA only, where it costs "
+                             "1.4-3.4x the physics stage, more the fuller the card; about 8x on a CPU)")
     parser.add_argument("--seed", type=int, help=f"seed of stage 0 and of the batch sampling (default: {d['seed']})")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out with the settings it recorded (flags given must agree)")
