@@ -171,3 +171,37 @@ def test_a_failed_refinement_keeps_the_first_fit(tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "run_pipeline", stop)
     with pytest.raises(RunInterrupted):
         grid_refinement.refine_after_fit(s, dict(first), est, "cuda", run)
+
+
+def test_a_parameter_the_finer_grid_moves_beyond_its_spread_asks_for_a_refit():
+    """The grid check compares the finer grid's shift of the frames with the misfit; a fit can pass
+    it with a material parameter that the uncertainty's grid term moves by more than its posterior
+    standard deviation (sand at the paper's size: friction angles about 7 degrees low behind passed
+    checks). Such a fit is refitted too; v0, effects and fixed parameters do not count."""
+    from toolkit.grid_refinement import GRID_SHIFT_SD, grid_moved_parameters, refinement_reason
+    from toolkit.physics.uncertainty import annotate_rows
+
+    # annotate_rows: the shift in posterior sds of the raw space, from the uncertainty's record
+    result = {"parameters": {
+        "friction_angle": {"low": 18.0, "high": 28.0, "label": "determined", "note": "", "grid_value": 25.3,
+                           "grid_offset": 0.12, "std": 0.08},
+        "v0_x": {"low": 0.3, "high": 0.4, "label": "determined", "note": "", "grid_value": 0.33, "grid_offset": 0.01, "std": 0.02},
+        "E": {"low": 1e5, "high": 1e6, "label": "weakly determined", "note": "", "grid_value": None, "grid_offset": 0.0, "std": 0.3}}}
+    rows = annotate_rows([{"parameter": "friction_angle"}, {"parameter": "v0_x"}, {"parameter": "E"}, {"parameter": "nu"}], result)
+    assert rows[0]["grid_shift_sd"] == pytest.approx(1.5) and rows[1]["grid_shift_sd"] == pytest.approx(0.5)
+    assert rows[2]["grid_shift_sd"] is None and rows[3]["label"] == "fixed (not fitted)" and "grid_shift_sd" not in rows[3]
+
+    passed = {"dx": 0.02, "fine_dx": 0.01, "converged": True, "ratio": 0.54}
+    summary = {"grid_check": passed, "parameters": rows}
+    assert grid_moved_parameters(summary) == ["friction_angle (1.5 sd)"]
+    assert refinement_reason(summary) == "a grid of half the spacing moves friction_angle (1.5 sd)"
+    assert needs_refinement(summary) and needs_refinement(summary, "auto")
+    # within its spread, or only v0 / an effect / a fixed parameter moved: no refit
+    within = [dict(rows[0], grid_shift_sd=GRID_SHIFT_SD), dict(rows[1], grid_shift_sd=4.0),
+              {"parameter": "air_drag.linear", "grid_shift_sd": 3.0, "label": "determined"},
+              {"parameter": "nu", "grid_shift_sd": 3.0, "label": "fixed (not fitted)"}]
+    assert refinement_reason({"grid_check": passed, "parameters": within}) is None
+    # a failed check says so first; a skipped check (the finer grid does not fit) refits nothing
+    assert refinement_reason({"grid_check": dict(passed, converged=False), "parameters": rows}) == "the grid check failed"
+    assert refinement_reason({"grid_check": {"skipped": "GridTooLargeError: ..."}, "parameters": rows}) is None
+    assert refinement_reason({"grid_check": passed, "parameters": within}, "always") == "refine_grid='always'"

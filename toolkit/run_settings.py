@@ -50,13 +50,14 @@ class RunSettings:
         checkpoint_every: physics iterations between checkpoints.
         report_cameras: cameras shown in the video (default: two fitted and two held-out ones).
         seed: seed of stage 0 and of the batch sampling.
-        refine_grid: when the grid check finds the estimate grid-dependent, fit again at half the
+        refine_grid: when the estimate depends on the grid (the grid check fails, or the uncertainty's
+            grid term moves a fitted material parameter by more than its standard deviation;
+            :func:`toolkit.grid_refinement.refinement_reason`), fit again at half the
             grid spacing in ``out/refined`` from the estimate, sharing stage 0
             (:mod:`toolkit.grid_refinement`); the summary's ``refined`` holds that run's summary.
             ``"auto"`` (default): on a CUDA device only, where it costs 1.4-3.4x the physics
             stage (more the fuller the card; 8x on CPU); ``True``: on any device; ``False``: never;
-            ``"always"``: every fit whose grid check ran, whatever it found, on any device (the
-            check compares the finer grid's shift with the misfit, not with a parameter's bias).
+            ``"always"``: every fit whose grid check ran, whatever it found, on any device.
         threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
             alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
             ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA

@@ -96,6 +96,7 @@ def format_summary(summary: dict) -> str:
         lines.append(f"--- the refined fit on a grid of half the spacing failed ({refined['out']}); the estimate above "
                      f"stands: {refined['failed']}")
     elif refined:
-        lines.append(f"--- refined on a grid of half the spacing ({refined['out']}):")
+        why = f"; {refined['reason']}" if refined.get("reason") else ""
+        lines.append(f"--- refined on a grid of half the spacing ({refined['out']}{why}):")
         lines.append(format_summary(refined["summary"]))
     return "\n".join(lines)

@@ -76,7 +76,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help='JSON ContinuumConfig fields, e.g. \'{"centre_stamp": "ellipsoid", "carve_depth": "opaque"}\' '
                              "(default: GIC's procedure on a lattice at sim.dx / 2)")
     parser.add_argument("--device", help=f"auto, cpu, cuda or cuda:N (default: {d['device']})")
-    add_refine_grid_argument(parser, "when the grid check finds the estimate grid-dependent, fit again at half the grid "
+    add_refine_grid_argument(parser, "when the estimate depends on the grid (the grid check fails, or a grid of half the "
+                             "spacing moves a material parameter by more than its standard deviation), fit again at that "
                              "spacing in OUT/refined, starting from the estimate (default: on CUDA only, where it costs "
                              "1.4-3.4x the physics stage, more the fuller the card; about 8x on a CPU)")
     parser.add_argument("--seed", type=int, help=f"seed of stage 0 and of the batch sampling (default: {d['seed']})")

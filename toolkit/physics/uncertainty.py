@@ -480,15 +480,21 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
 
 
 def annotate_rows(rows: list[dict], result: Optional[dict]) -> list[dict]:
-    """Add ``low``, ``high``, ``label``, ``note`` and ``grid_value`` (the estimate on a grid of half the
-    spacing, :mod:`toolkit.physics.grid_term`) to summary rows (``{"parameter": name, ...}``)
-    from an :meth:`Uncertainty.to_dict` result; parameters the fit did not optimize get
-    ``label = "fixed (not fitted)"``. Rows are changed in place and returned."""
+    """Add ``low``, ``high``, ``label``, ``note``, ``grid_value`` (the estimate on a grid of half the
+    spacing, :mod:`toolkit.physics.grid_term`) and ``grid_shift_sd`` (how far that grid moves the
+    estimate, in posterior standard deviations of the raw space; None without the grid term) to
+    summary rows (``{"parameter": name, ...}``) from an :meth:`Uncertainty.to_dict` result;
+    parameters the fit did not optimize get ``label = "fixed (not fitted)"``. Rows are changed in
+    place and returned."""
     params = (result or {}).get("parameters", {})
     for row in rows:
         p = params.get(row["parameter"])
         if p is not None:
-            row.update(low=p["low"], high=p["high"], label=p["label"], note=p.get("note", ""), grid_value=p.get("grid_value"))
+            shift = None
+            if p.get("grid_value") is not None and p.get("std"):
+                shift = abs(float(p.get("grid_offset") or 0.0)) / float(p["std"])
+            row.update(low=p["low"], high=p["high"], label=p["label"], note=p.get("note", ""), grid_value=p.get("grid_value"),
+                       grid_shift_sd=shift)
         elif result is not None:
             row.update(low=None, high=None, label="fixed (not fitted)", note="")
     return rows
