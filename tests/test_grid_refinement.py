@@ -205,3 +205,18 @@ def test_a_parameter_the_finer_grid_moves_beyond_its_spread_asks_for_a_refit():
     assert refinement_reason({"grid_check": dict(passed, converged=False), "parameters": rows}) == "the grid check failed"
     assert refinement_reason({"grid_check": {"skipped": "GridTooLargeError: ..."}, "parameters": rows}) is None
     assert refinement_reason({"grid_check": passed, "parameters": within}, "always") == "refine_grid='always'"
+
+
+def test_auto_on_cpu_leaves_the_grid_terms_shift_to_the_note(scene, tmp_path, monkeypatch, caplog):
+    """Under "auto" on a CPU, a fit whose check passed but whose grid term moved a parameter is not
+    refitted and not warned about (the parameter's note says it); a failed check is a warning."""
+    import toolkit.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda child, mode: pytest.fail("no refined fit on a CPU under auto"))
+    s = RunSettings(scene=str(scene), out=str(tmp_path / "run"), sim={"dx": 0.04})
+    moved = {"grid_check": {"converged": True, "fine_dx": 0.02, "ratio": 0.5},
+             "parameters": [{"parameter": "E", "label": "determined", "grid_shift_sd": 1.2}]}
+    est = {"params": {"E": 3e4, "nu": 0.3}, "v0": [0.0, 0.0, 0.0], "gravity": [0.0, -9.8, 0.0], "effects": {}}
+    with caplog.at_level("INFO", logger="toolkit.grid_refinement"):
+        assert grid_refinement.refine_grid(s, moved, est, "cpu") is None
+    assert [r.levelname for r in caplog.records] == ["INFO"] and "E (1.2 sd)" in caplog.text

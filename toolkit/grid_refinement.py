@@ -137,8 +137,10 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     if not needs_refinement(summary, s.refine_grid):
         return None
     if not refines_on(s.refine_grid, device):
-        log.warning("%s: `--refine-grid` would fit again at dx %g m from this estimate (not by default on %s: about 8x "
-                    "this physics stage)", refinement_reason(summary, s.refine_grid), summary["grid_check"]["fine_dx"], device)
+        # a failed check is a warning; the grid term's shift is already in the parameter's note
+        level = logging.WARNING if summary["grid_check"].get("converged") is False else logging.INFO
+        log.log(level, "%s: `--refine-grid` would fit again at dx %g m from this estimate (not by default on %s: about 8x "
+                "this physics stage)", refinement_reason(summary, s.refine_grid), summary["grid_check"]["fine_dx"], device)
         return None
     child = refined_settings(s, estimate, summary["grid_check"]["fine_dx"])
     out = Path(child.out)

@@ -22,6 +22,7 @@ def add_refine_grid_argument(parser, help: str) -> None:
     (False) into ``args.refine_grid``; None when none is given (the settings' default)."""
     parser.add_argument("--refine-grid", dest="refine_grid", action="store_const", const=True, default=None, help=help)
     parser.add_argument("--refine-grid-always", dest="refine_grid", action="store_const", const="always",
-                        help="fit every run again at half the grid spacing, whatever its grid check found (any device)")
+                        help="fit every run again at half the grid spacing, whatever its grid check found, on any "
+                             "device (default: only a run whose estimate depends on the grid)")
     parser.add_argument("--no-refine-grid", dest="refine_grid", action="store_const", const=False,
-                        help="never fit again at a finer grid")
+                        help="never fit again at a finer grid (default: refit a grid-dependent estimate on CUDA only)")
