@@ -1,5 +1,5 @@
 """`projo4d run --refine-grid` (toolkit.grid_refinement): a second fit at half the grid spacing
-when the grid check fails, starting from the estimate and sharing stage 0.
+when the estimate depends on the grid (a failed check, or the grid term), starting from the estimate and sharing stage 0.
 
 Physics: an MPM trajectory converges as the grid is refined, so the refined run's own grid check
 (0.04 -> 0.02 m) must move the training frames less than the parent's (0.08 -> 0.04 m), on a box

@@ -172,7 +172,8 @@ def estimate_job(job: dict, info: dict, profile: DeviceProfile, n_particles: Opt
 
 
 def fit_may_refine(job: dict, profile: DeviceProfile) -> bool:
-    """Whether a fit job refits at half the grid spacing when its grid check fails: its
+    """Whether a fit job refits at half the grid spacing when its estimate depends on the grid
+    (:func:`toolkit.grid_refinement.refinement_reason`): its
     ``refine_grid`` setting is true, or ``auto`` (the default) on a CUDA profile
     (:func:`toolkit.grid_refinement.refines_on`)."""
     from toolkit.grid_refinement import refines_on
@@ -181,7 +182,7 @@ def fit_may_refine(job: dict, profile: DeviceProfile) -> bool:
 
 
 def refinement_estimate(job: dict, info: dict, profile: DeviceProfile, n_particles: Optional[int] = None) -> float:
-    """Model estimate (seconds) of the refined fit a fit job adds when its grid check fails (0 when
+    """Model estimate (seconds) of the refined fit a fit job adds when it refines (0 when
     it cannot refine, :func:`fit_may_refine`): the fit's work again, times ``profile.refine_factor``
     (the process, its start-up and stage 0 are shared)."""
     if not fit_may_refine(job, profile):

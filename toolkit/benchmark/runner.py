@@ -300,7 +300,7 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
             if (m.get("result") or {}).get("n_particles"):
                 particles[j["id"]] = int(m["result"]["n_particles"])
     model: dict[str, float] = {}
-    refine_model: dict[str, float] = {}  # a fit's extra seconds if its grid check fails and it refines
+    refine_model: dict[str, float] = {}  # a fit's extra seconds if it refines (refinement_reason)
 
     def price(j: dict, n_part: Optional[int]) -> None:
         sc = base_scene(scene_by_name[j["scene"]])  # a variant: priced as its source scene
@@ -341,7 +341,8 @@ def run_benchmark(spec, out: str | Path, *, executor: str = "local", workers: Op
               "time follows the dependencies (stage 0 before its fits)" + (f"; with {jobs_per_gpu} jobs a GPU ({fits_a_gpu} fits) a fit is "
                                                                           f"assumed {slow_of('fit'):.2f}x slower and other "
                                                                           f"jobs {slow_of('other'):.2f}x" if gpus and jobs_per_gpu > 1 else "")
-              + (f"; a fit whose grid check fails is fitted again at half the grid spacing (refine_grid), about "
+              + (f"; a fit whose estimate depends on the grid (its grid check fails, or the grid term moves a material "
+                 f"parameter by more than its standard deviation) is fitted again at half the grid spacing (refine_grid), about "
                  f"{profile.refine_factor:g}x its physics stage more: estimated_wall_s_if_all_refined is the wall time "
                  "if every one does" if refined_wall is not None else ""))
     for j in todo:
