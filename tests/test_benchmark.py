@@ -541,7 +541,7 @@ def test_stopped_fit_state_says_whether_the_material_was_final(tmp_path):
     assert stopped_fit_state(tmp_path / "missing.ckpt") is None
 
 
-def test_a_fit_whose_grid_check_fails_is_refined_and_recorded_by_its_refined_result(suite, tmp_path):
+def test_a_refined_benchmark_fit_is_recorded_by_its_refined_result(suite, tmp_path):
     """refine_grid in a benchmark fit: the refined run is fitted in the fit's folder, and the table's
     record is the refined result with the first fit's kept under ``coarse``."""
     from toolkit.benchmark import BenchmarkSpec, run_benchmark, scenes_from_suite

@@ -178,7 +178,8 @@ def test_a_parameter_the_finer_grid_moves_beyond_its_spread_asks_for_a_refit():
     it with a material parameter that the uncertainty's grid term moves by more than its posterior
     standard deviation (sand at the paper's size: friction angles about 7 degrees low behind passed
     checks). Such a fit is refitted too; v0, effects and fixed parameters do not count."""
-    from toolkit.grid_refinement import GRID_SHIFT_SD, grid_moved_parameters, refinement_reason
+    from toolkit.grid_refinement import grid_moved_parameters, refinement_reason
+    from toolkit.physics.grid_term import GRID_SHIFT_SD
     from toolkit.physics.uncertainty import annotate_rows
 
     # annotate_rows: the shift in posterior sds of the raw space, from the uncertainty's record

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Optional
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.pipeline import RunSettings
 
-__all__ = ["REFINED_FOLDER", "GRID_SHIFT_SD", "grid_moved_parameters", "refinement_reason", "needs_refinement", "refines_on",
+__all__ = ["REFINED_FOLDER", "grid_moved_parameters", "refinement_reason", "needs_refinement", "refines_on",
            "refined_settings", "refine_grid", "refine_after_fit"]
 
 #: the refined run's sub-folder of the run folder
@@ -45,16 +45,14 @@ REFINED_FOLDER = "refined"
 log = logging.getLogger(__name__)
 
 
-#: a fitted material parameter that a grid of half the spacing moves by more than this many posterior
-#: standard deviations (the uncertainty's grid term) makes the estimate grid-dependent
-GRID_SHIFT_SD = 1.0
-
-
 def grid_moved_parameters(summary: dict) -> list[str]:
     """The fitted material parameters (not v0, gravity or effects; not fixed) whose estimate the
     uncertainty's grid term (:mod:`toolkit.physics.grid_term`) moves by more than
-    :data:`GRID_SHIFT_SD` posterior standard deviations on a grid of half the spacing (the rows'
-    ``grid_shift_sd``), each as ``"name (x.x sd)"``."""
+    :data:`~toolkit.physics.grid_term.GRID_SHIFT_SD` posterior standard deviations on a grid of half
+    the spacing (the rows' ``grid_shift_sd``; the same rule as the parameter's note), each as
+    ``"name (x.x sd)"``."""
+    from toolkit.physics.grid_term import GRID_SHIFT_SD
+
     out = []
     for row in summary.get("parameters") or []:
         name, shift = str(row.get("parameter", "")), row.get("grid_shift_sd")
@@ -134,13 +132,14 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     from toolkit.pipeline import run_pipeline
     from toolkit.run_folder import claim_run_folder
 
-    if not needs_refinement(summary, s.refine_grid):
+    reason = refinement_reason(summary, s.refine_grid)
+    if reason is None:
         return None
     if not refines_on(s.refine_grid, device):
         # a failed check is a warning; the grid term's shift is already in the parameter's note
         level = logging.WARNING if summary["grid_check"].get("converged") is False else logging.INFO
         log.log(level, "%s: `--refine-grid` would fit again at dx %g m from this estimate (not by default on %s: about 8x "
-                "this physics stage)", refinement_reason(summary, s.refine_grid), summary["grid_check"]["fine_dx"], device)
+                "this physics stage)", reason, summary["grid_check"]["fine_dx"], device)
         return None
     child = refined_settings(s, estimate, summary["grid_check"]["fine_dx"])
     out = Path(child.out)
@@ -148,8 +147,7 @@ def refine_grid(s: "RunSettings", summary: dict, estimate: dict, device: str = "
     stage0 = Path(s.out) / "stage0" if stage0 is None else Path(stage0)
     if stage0.is_dir() and not (out / "stage0").exists():
         os.symlink(os.path.relpath(stage0, out), out / "stage0", target_is_directory=True)
-    log.warning("%s: fitting again at dx %g m in %s (refine_grid=%s)", refinement_reason(summary, s.refine_grid),
-                child.sim["dx"], out, s.refine_grid)
+    log.warning("%s: fitting again at dx %g m in %s (refine_grid=%s)", reason, child.sim["dx"], out, s.refine_grid)
     return run_pipeline(child, mode="auto")
 
 

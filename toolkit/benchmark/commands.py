@@ -118,8 +118,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     size.add_argument("--downscale", type=int, help="integer image downscale factor")
     size.add_argument("--n-train", type=int, help="training frames (default: the scene's split)")
     size.add_argument("--seed", type=int)
-    add_refine_grid_argument(size, "refit a fit whose estimate depends on the grid (see `projo4d run --help`) at half the grid spacing; the table then "
-                                   "reports the refined result (default: on CUDA only; see `projo4d run --help`)")
+    add_refine_grid_argument(size, "refit a fit whose estimate depends on the grid at half the grid spacing; the table "
+                                   "then reports the refined result (default: on CUDA only; see `projo4d run --help`)")
     size.add_argument("--device", choices=["auto", "cpu", "cuda"], help="device of the jobs (default auto)")
     size.add_argument("--renderer", help="renderer name (default auto)")
     size.add_argument("--stage1-iterations", type=int, help="Stage-1 iterations of every strategy that has them (100)")

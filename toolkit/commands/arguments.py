@@ -16,7 +16,6 @@ def json_arg(text: str):
         raise argparse.ArgumentTypeError(f"not valid JSON: {text!r} ({err.msg})") from None
 
 
-
 def add_refine_grid_argument(parser, help: str) -> None:
     """``--refine-grid`` (True), ``--refine-grid-always`` (``"always"``) and ``--no-refine-grid``
     (False) into ``args.refine_grid``; None when none is given (the settings' default)."""

@@ -36,7 +36,12 @@ from typing import Optional
 import numpy as np
 import torch
 
-__all__ = ["grid_offsets"]
+__all__ = ["grid_offsets", "GRID_SHIFT_SD"]
+
+#: a grid of half the spacing that moves an estimate by more than this many posterior standard deviations
+#: makes it grid-dependent: the parameter's note says so, and the finer-grid refit runs
+#: (:func:`toolkit.grid_refinement.refinement_reason`)
+GRID_SHIFT_SD = 1.0
 
 
 @torch.no_grad()

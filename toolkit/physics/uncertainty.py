@@ -77,6 +77,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
+from toolkit.physics.grid_term import GRID_SHIFT_SD
 from toolkit.physics.uncertainty_probes import _fine_fit_loss_rise, _fit_loss_rise, _geometric_ssr, _map_step, _open_sides, _Residuals, _simulate
 
 __all__ = ["LABELS", "DETERMINED_BELOW", "NOT_DETERMINED_ABOVE", "PRIOR_STD", "CLUSTERS_PER_FRAME", "ParameterUncertainty",
@@ -461,7 +462,7 @@ def estimate_uncertainty(module, level: float = 0.9, prior_step: bool = True, gr
             off = float(offsets[k])
             moved_to = p.physical(theta[k] + off)
             ends = [min(ends[0], ends[0] + off), max(ends[1], ends[1] + off)]  # the fine grid's answer too
-            if abs(off) > sd:
+            if abs(off) > GRID_SHIFT_SD * sd:
                 note = "; ".join(x for x in (note, f"a grid of half the spacing moves it to {moved_to:.3g} (the interval "
                                                    f"covers both grids)") if x)
         lo, hi = sorted((p.physical(ends[0]), p.physical(ends[1])))
