@@ -46,6 +46,8 @@ def test_a_refinement_costs_the_fit_again_times_the_measured_factor():
     forced = _fit(refine_grid=True)
     assert refinement_estimate(forced, info, cpu, 2000) == pytest.approx(
         (estimate_job(forced, info, cpu, 2000) - cpu.startup) * 8.0)
+    half = _fit(refine_grid=True, refine_iterations=0.5)  # a refit of half the curriculum: half the work
+    assert refinement_estimate(half, info, cpu, 2000) == pytest.approx(refinement_estimate(forced, info, cpu, 2000) / 2)
 
 
 def test_the_plan_gives_the_wall_time_if_every_fit_refines(tmp_path, capsys):

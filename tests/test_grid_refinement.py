@@ -7,6 +7,7 @@ Physics: an MPM trajectory converges as the grid is refined, so the refined run'
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -70,6 +71,28 @@ def test_refined_settings_and_the_shared_stage0(tmp_path):
         RunSettings(scene="scene", refine_grid="yes").validate()
 
 
+def test_the_refined_curriculum_is_the_parents_scaled():
+    """refine_iterations scales every stage's iterations (rounded, at least 1) and keeps the rest of
+    each stage: its window (``@ff`` unresolved, set again per clip), batch and ``[S]`` rule."""
+    from strategies.schedule import parse_schedule
+    from toolkit.grid_refinement import refined_curriculum
+
+    est = {"params": {"E": 2e5}, "v0": [0.0, 0.0, 0.0]}
+    s = RunSettings(scene="scene", out="run", material="plasticine", curriculum="progressive",
+                    curriculum_options={"stage2_iterations": 90, "early_frames": "free_flight"})
+    assert refined_curriculum(s, 1.0) == ("progressive", {"stage2_iterations": 90, "early_frames": "free_flight"})
+    half = refined_settings(dataclasses.replace(s, refine_iterations=0.5), est, 0.01)
+    assert (half.curriculum, half.curriculum_options) == ("XAS:50@ff/3x3,XA[S]M:45/3x20", {})
+    # plasticine's own stage-2 count (300) when the parent gives none; a 3-iteration stage keeps 1
+    s = dataclasses.replace(s, curriculum_options={})
+    assert refined_curriculum(s, 0.25)[0] == "XAS:25@3/3x3,XA[S]M:75/3x20"
+    stages = parse_schedule(refined_curriculum(dataclasses.replace(s, curriculum="XAS:3@3~geo,XASM:8"), 0.1)[0])
+    assert [(st.iterations, st.frames, st.losses) for st in stages] == [(1, 3, ("geometry",)), (1, None, ("image", "geometry"))]
+    for bad in (0, 1.5, -0.5, True, "half"):
+        with pytest.raises(ValueError, match="refine_iterations"):
+            RunSettings(scene="scene", refine_iterations=bad).validate()
+
+
 def test_auto_refines_on_cuda_only():
     assert RunSettings(scene="scene").refine_grid == "auto"
     assert grid_refinement.refines_on("auto", "cuda") and grid_refinement.refines_on("auto", "cuda:1")
@@ -88,10 +111,12 @@ def test_the_refine_grid_flags():
     p = argparse.ArgumentParser()
     p.add_argument("scene", nargs="?")
     add_refine_grid_argument(p, "help")
-    assert vars(p.parse_args(["S"])) == {"scene": "S", "refine_grid": None}
-    assert vars(p.parse_args(["--refine-grid", "S"])) == {"scene": "S", "refine_grid": True}
-    assert vars(p.parse_args(["--refine-grid-always", "S"])) == {"scene": "S", "refine_grid": "always"}
-    assert vars(p.parse_args(["--no-refine-grid", "S"])) == {"scene": "S", "refine_grid": False}
+    none = {"scene": "S", "refine_grid": None, "refine_iterations": None}
+    assert vars(p.parse_args(["S"])) == none
+    assert vars(p.parse_args(["--refine-grid", "S"])) == {**none, "refine_grid": True}
+    assert vars(p.parse_args(["--refine-grid-always", "S"])) == {**none, "refine_grid": "always"}
+    assert vars(p.parse_args(["--no-refine-grid", "S"])) == {**none, "refine_grid": False}
+    assert vars(p.parse_args(["--refine-iterations", "0.5", "S"])) == {**none, "refine_iterations": 0.5}
     with pytest.raises(ValueError, match="scene = 'scene'"):  # past refine_grid's check, stopped at the missing folder
         RunSettings(scene="scene", refine_grid="always").validate()
 

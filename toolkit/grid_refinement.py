@@ -11,7 +11,8 @@ deviation (:func:`refinement_reason`), the physics is fitted again at ``dx / 2``
 * it shares the parent's stage 0 (``refined/stage0`` links to ``../stage0``; nothing is trained
   again) and builds its continuum at the finer spacing (particles at ``dx / 4``);
 * the material parameters and v0 start at the parent's estimate (``material_init="given"``: no
-  coarse search on the finer grid), with the parent's curriculum;
+  coarse search on the finer grid), with the parent's curriculum, each stage's iterations times
+  ``RunSettings.refine_iterations`` (``--refine-iterations``; :func:`refined_curriculum`);
 * it is not refined again, whatever its own grid check says.
 
 The refinement has about 8x the particles and nodes and twice the substeps of the parent's
@@ -36,7 +37,7 @@ from typing import TYPE_CHECKING, Optional
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.pipeline import RunSettings
 
-__all__ = ["REFINED_FOLDER", "grid_moved_parameters", "refinement_reason", "needs_refinement", "refines_on",
+__all__ = ["REFINED_FOLDER", "grid_moved_parameters", "refined_curriculum", "refinement_reason", "needs_refinement", "refines_on",
            "refined_settings", "refine_grid", "refine_after_fit"]
 
 #: the refined run's sub-folder of the run folder
@@ -102,12 +103,35 @@ def refines_on(setting: bool | str, device: str) -> bool:
     return bool(setting)
 
 
+def refined_curriculum(s: "RunSettings", fraction: float) -> tuple[str, dict]:
+    """The refined run's curriculum ``(curriculum, curriculum_options)``: the parent's, or, when
+    ``fraction < 1``, its stages as a schedule string (:mod:`strategies.schedule`) with each stage's
+    iterations times ``fraction`` (rounded, at least 1); windows, batches, losses and the ``[S]``
+    rule are kept. A curriculum with a stage learning-rate multiplier (which the schedule string
+    cannot hold) is kept whole, with a warning."""
+    if fraction >= 1:
+        return s.curriculum, dict(s.curriculum_options)
+    from materials import get_material
+    from strategies.schedule import format_stage
+    from toolkit.pipeline import resolve_curriculum
+
+    key = get_material(s.material, **(s.material_options or {})).registry_name or None
+    stages = resolve_curriculum(s.curriculum, s.curriculum_options).stages(key)
+    if any(st.lr_scale for st in stages):
+        log.warning("refine_iterations=%g: curriculum %r has a stage learning-rate multiplier; the refined fit runs it "
+                    "whole", fraction, s.curriculum)
+        return s.curriculum, dict(s.curriculum_options)
+    scaled = [dataclasses.replace(st, iterations=max(1, round(st.iterations * fraction))) for st in stages]
+    return ",".join(format_stage(st) for st in scaled), {}
+
+
 def refined_settings(s: "RunSettings", estimate: dict, fine_dx: float) -> "RunSettings":
     """The settings of the refined run: ``s`` at ``sim.dx = fine_dx`` in ``s.out/refined``, starting
     at ``estimate`` (:meth:`~toolkit.physics.InversePhysicsModule.estimate`: material parameters, v0,
     effect strengths, and gravity when it is fitted), without a coarse search and without a further
     refinement. A continuum spacing the parent
-    set explicitly is halved too."""
+    set explicitly is halved too; the curriculum is :func:`refined_curriculum` of
+    ``s.refine_iterations``."""
     params = {k: float(v) for k, v in estimate["params"].items()}
     options = {**(s.model_options or {}), "material_init": "given", "v0_init": [float(v) for v in estimate["v0"]]}
     if estimate.get("effects"):
@@ -118,7 +142,9 @@ def refined_settings(s: "RunSettings", estimate: dict, fine_dx: float) -> "RunSe
     continuum = dict(s.continuum)
     if "grid_size" in continuum:
         continuum["grid_size"] = float(continuum["grid_size"]) / 2
-    return dataclasses.replace(s, out=str(Path(s.out) / REFINED_FOLDER), sim=sim,
+    curriculum, curriculum_options = refined_curriculum(s, float(s.refine_iterations))
+    return dataclasses.replace(s, out=str(Path(s.out) / REFINED_FOLDER), sim=sim, curriculum=curriculum,
+                               curriculum_options=curriculum_options,
                                initial_params={**(s.initial_params or {}), **params}, model_options=options,
                                continuum=continuum, refine_grid=False)
 

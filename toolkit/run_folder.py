@@ -37,7 +37,8 @@ __all__ = ["RUN_FILE", "scene_fingerprint", "run_identity", "claim_run_folder", 
 
 RUN_FILE = "run.json"
 #: settings that never change results (excluded from the identity)
-NEUTRAL_SETTINGS = frozenset({"scene", "out", "device", "threads", "checkpoint_every", "report_cameras", "refine_grid"})
+NEUTRAL_SETTINGS = frozenset({"scene", "out", "device", "threads", "checkpoint_every", "report_cameras", "refine_grid",
+                              "refine_iterations"})
 #: the settings stage 0 depends on (the identity of a folder that ran only stage 0)
 STAGE0_SETTINGS = ("cameras", "downscale", "geometry", "n_train", "renderer", "seed", "stage0")
 #: what a run folder may hold (``--overwrite`` removes exactly these)

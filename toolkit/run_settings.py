@@ -58,6 +58,9 @@ class RunSettings:
             ``"auto"`` (default): on a CUDA device only, where it costs 1.4-3.4x the physics
             stage (more the fuller the card; 8x on CPU); ``True``: on any device; ``False``: never;
             ``"always"``: every fit whose grid check ran, whatever it found, on any device.
+        refine_iterations: the refined fit runs each stage of the curriculum for this fraction of
+            its iterations, in (0, 1] (it starts at the estimate;
+            :func:`toolkit.grid_refinement.refined_curriculum`).
         threads: CPU threads of this run (torch intra-/inter-op, OpenMP, BLAS), on CPU and CUDA
             alike. ``None``: ``PROJO4D_THREADS`` if set, else the affinity-mask cores divided by
             ``PROJO4D_CONCURRENT_RUNS`` (runs sharing the machine, default 1), at most 8 on CUDA
@@ -91,6 +94,7 @@ class RunSettings:
     seed: int = 0
     threads: Optional[int] = None
     refine_grid: bool | str = "auto"
+    refine_iterations: float = 1.0
 
     def check_fields(self) -> None:
         """The checks that need neither the scene's contents nor torch: the thread count, the
@@ -127,3 +131,6 @@ class RunSettings:
         check_model_options(self.model_options)
         if not (isinstance(self.refine_grid, bool) or self.refine_grid in ("auto", "always")):
             raise SettingsError("refine_grid", self.refine_grid, "true, false, 'auto' or 'always'")
+        f = self.refine_iterations
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f <= 1:
+            raise SettingsError("refine_iterations", f, "a fraction of the curriculum's iterations in (0, 1]")

@@ -219,7 +219,7 @@ def spec_from_args(args: argparse.Namespace):
             raise BenchmarkError(f"--continuum {json.dumps(args.continuum)}: {err}") from None
     overrides = {}
     for key in ("geometry", "sim", "continuum", "model_options", "downscale", "n_train", "seed", "device", "renderer",
-                "refine_grid"):
+                "refine_grid", "refine_iterations"):
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v

@@ -184,10 +184,12 @@ def fit_may_refine(job: dict, profile: DeviceProfile) -> bool:
 def refinement_estimate(job: dict, info: dict, profile: DeviceProfile, n_particles: Optional[int] = None) -> float:
     """Model estimate (seconds) of the refined fit a fit job adds when it refines (0 when
     it cannot refine, :func:`fit_may_refine`): the fit's work again, times ``profile.refine_factor``
-    (the process, its start-up and stage 0 are shared)."""
+    and the job's ``refine_iterations`` (the fraction of the curriculum the refit runs; the process,
+    its start-up and stage 0 are shared)."""
     if not fit_may_refine(job, profile):
         return 0.0
-    return max(0.0, estimate_job(job, info, profile, n_particles) - profile.startup) * profile.refine_factor
+    fraction = float(job.get("settings", {}).get("refine_iterations", 1.0))
+    return max(0.0, estimate_job(job, info, profile, n_particles) - profile.startup) * profile.refine_factor * fraction
 
 
 class Calibration:

@@ -126,6 +126,7 @@ def settings_from_args(args: argparse.Namespace, command: str = "run"):
         "downscale": args.downscale, "geometry": args.geometry, "sim": args.sim, "device": args.device, "seed": args.seed,
         "continuum": getattr(args, "continuum", None),
         "threads": args.threads, "refine_grid": getattr(args, "refine_grid", None),
+        "refine_iterations": getattr(args, "refine_iterations", None),
     }
     if args.cameras:
         over["cameras"] = _cameras_arg(args.cameras)
