@@ -367,6 +367,9 @@ def test_point_render_draws_a_disc_at_the_projected_pixel_with_the_stated_radius
     assert (tiny[..., 3] == 0).all() and (tiny[..., :3] == 40).all()
     assert (render_points([[x, y, 2 - depth]], [[0.2, 0.6, 1.0]], K, w2c, 128, 96, 0.04, bg)
             == render_points([[x, y, 2 - depth]], [[0.2, 0.6, 1.0]], K, w2c, 128, 96, 0.04, bg, supersample=1)).all()
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="supersample must be"):
+            render_points([[x, y, 2 - depth]], [[0.2, 0.6, 1.0]], K, w2c, 128, 96, 0.04, bg, supersample=bad)
     jj, ii = np.nonzero(_covered(u, v, 5.0))
     assert (ii.mean() + 0.5, jj.mean() + 0.5) == (pytest.approx(u, abs=0.1), pytest.approx(v, abs=0.1))
     # sphere-impostor shading, light from the camera (+z world): full albedo at the centre, darker at the rim

@@ -91,6 +91,17 @@ def _downsample(rgba: np.ndarray, s: int, background: np.ndarray) -> np.ndarray:
     return np.concatenate([rgb8, np.where(hit, 255, 0).astype(np.uint8)[..., None]], axis=2)
 
 
+def _background_rgb(background: Optional[np.ndarray], width: int, height: int) -> np.ndarray:
+    """(H, W, 3) float64 in [0, 1] of ``background`` ((H, W, 3 or 4) uint8 or float in [0, 1]); black for None."""
+    if background is None:
+        return np.zeros((height, width, 3))
+    bg = np.asarray(background)
+    bg = bg[..., :3].astype(np.float64) / 255.0 if bg.dtype == np.uint8 else bg[..., :3].astype(np.float64)
+    if bg.shape != (height, width, 3):
+        raise ValueError(f"background must be ({height}, {width}, 3), got {bg.shape}")
+    return bg
+
+
 def texture_from_record(record: Optional[dict]):
     """The texture a scene's ``ground_truth.json`` records (``render.texture``: a procedural or a
     constant texture of :mod:`toolkit.synthetic.texture`), or None if it records none it knows."""
@@ -184,7 +195,8 @@ def render_points(points: np.ndarray, colours: np.ndarray, K: np.ndarray, w2c: n
             None: :func:`supersample_factor` of the discs in view (1 where every disc is >= 1 px).
 
     Returns:
-        (H, W, 4) uint8 straight RGBA; alpha 255 where a disc covers the pixel centre, else 0.
+        (H, W, 4) uint8 straight RGBA; alpha 255 where a disc covers the pixel centre (supersampled:
+        half the pixel's sample centres), else 0.
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     col = np.asarray(colours)
@@ -193,6 +205,9 @@ def render_points(points: np.ndarray, colours: np.ndarray, K: np.ndarray, w2c: n
         raise ValueError(f"colours must be (N, 3) for N = {len(p)} points, got {col.shape}")
     if not (math.isfinite(radius_m) and radius_m > 0):
         raise ValueError(f"radius_m must be a positive length in metres, got {radius_m!r}")
+    if supersample is not None and (isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer))
+                                    or supersample < 1):
+        raise ValueError(f"supersample must be None (chosen per view) or an integer >= 1, got {supersample!r}")
     K = np.asarray(K, dtype=np.float64)
     w2c = np.asarray(w2c, dtype=np.float64)
     R, t = w2c[:3, :3], w2c[:3, 3]
@@ -202,15 +217,12 @@ def render_points(points: np.ndarray, colours: np.ndarray, K: np.ndarray, w2c: n
     zk = z[keep]
     u = K[0, 0] * pc[keep, 0] / zk + K[0, 2]
     v = K[1, 1] * pc[keep, 1] / zk + K[1, 2]
+    bg = _background_rgb(background, width, height)
     if supersample is None:
         seen = (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
         supersample = supersample_factor(float(K[0, 0]) * radius_m / zk[seen])
-    if int(supersample) > 1:
-        s = int(supersample)
-        bg = np.zeros((height, width, 3)) if background is None else np.asarray(background)
-        bg = bg[..., :3].astype(np.float64) / 255.0 if bg.dtype == np.uint8 else bg[..., :3].astype(np.float64)
-        if bg.shape != (height, width, 3):
-            raise ValueError(f"background must be ({height}, {width}, 3), got {bg.shape}")
+    if supersample > 1:
+        s = supersample
         Ks = np.diag([float(s), float(s), 1.0]) @ K
         fine = render_points(p, col, Ks, w2c, width * s, height * s, radius_m, None, light_direction=light_direction,
                              ambient=ambient, near=near, supersample=1)
@@ -220,14 +232,7 @@ def render_points(points: np.ndarray, colours: np.ndarray, K: np.ndarray, w2c: n
     keep, u, v, r, zk = keep[on], u[on], v[on], r[on], zk[on]
     win, _, a, b = _rasterize(u, v, r, zk, width, height)
 
-    if background is None:
-        out_rgb = np.zeros((height * width, 3))
-    else:
-        bg = np.asarray(background)
-        bg = bg[..., :3].astype(np.float64) / 255.0 if bg.dtype == np.uint8 else bg[..., :3].astype(np.float64)
-        if bg.shape != (height, width, 3):
-            raise ValueError(f"background must be ({height}, {width}, 3), got {bg.shape}")
-        out_rgb = bg.reshape(-1, 3).copy()
+    out_rgb = bg.reshape(-1, 3).copy()
     hit = win >= 0
     albedo = col[keep[win[hit]]]
     if light_direction is not None:
