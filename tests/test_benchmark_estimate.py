@@ -84,6 +84,19 @@ def test_fits_sharing_a_gpu_are_priced_as_measured_and_other_jobs_as_before():
     assert all(b > a for a, b in zip(slow, slow[1:])) and all(s <= k for k, s in enumerate(slow, 1))
 
 
+@pytest.mark.parametrize("value", ["0", "1.5", "-0.5"])
+def test_a_refit_fraction_outside_0_1_is_refused_before_planning(tmp_path, capsys, value):
+    args = ["benchmark", "--suite", str(tmp_path / "suite"), "--generate", "--families", "sand", "--per-family", "1",
+            "--size", "small", "--strategies", "progressive", "--refine-iterations", value, "--out", str(tmp_path / "b"),
+            "--dry-run"]
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code not in (0, None)
+    err = str(stop.value.code) + capsys.readouterr().err
+    assert "--refine-iterations" in err and "(0, 1]" in err and '"event": "plan"' not in err
+    assert not (tmp_path / "b").exists() and not (tmp_path / "suite").exists()
+
+
 def _log_line(**e) -> str:
     return json.dumps(e) + "\n"
 

@@ -122,7 +122,7 @@ class RunSettings:
 
     def _check_options(self) -> None:
         from toolkit.run_config import check_model_options
-        from toolkit.run_validation import SettingsError
+        from toolkit.run_validation import SettingsError, check_refine_iterations
 
         if self.threads is not None:  # needs no scene: checked first
             from toolkit.threads import parse_count
@@ -131,6 +131,4 @@ class RunSettings:
         check_model_options(self.model_options)
         if not (isinstance(self.refine_grid, bool) or self.refine_grid in ("auto", "always")):
             raise SettingsError("refine_grid", self.refine_grid, "true, false, 'auto' or 'always'")
-        f = self.refine_iterations
-        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f <= 1:
-            raise SettingsError("refine_iterations", f, "a fraction of the curriculum's iterations in (0, 1]")
+        check_refine_iterations(self.refine_iterations)

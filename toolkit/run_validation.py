@@ -33,6 +33,13 @@ class SettingsError(ValueError):
         super().__init__(f"{field} = {value!r}: {expected}")
 
 
+def check_refine_iterations(value: Any, field: str = "refine_iterations") -> float:
+    """``RunSettings.refine_iterations``: a fraction of the curriculum's iterations in (0, 1]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise SettingsError(field, value, "a fraction of the curriculum's iterations in (0, 1]")
+    return float(value)
+
+
 def check_device(name: str) -> str:
     """``auto``, ``cpu``, ``cuda`` or ``cuda:N`` with that GPU present; returns the resolved device."""
     import torch

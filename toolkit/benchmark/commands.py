@@ -217,6 +217,13 @@ def spec_from_args(args: argparse.Namespace):
             ContinuumConfig.from_dict(args.continuum)
         except (TypeError, ValueError) as err:
             raise BenchmarkError(f"--continuum {json.dumps(args.continuum)}: {err}") from None
+    if args.refine_iterations is not None:
+        from toolkit.run_validation import check_refine_iterations
+
+        try:
+            check_refine_iterations(args.refine_iterations, "--refine-iterations")
+        except ValueError as err:
+            raise BenchmarkError(str(err)) from None
     overrides = {}
     for key in ("geometry", "sim", "continuum", "model_options", "downscale", "n_train", "seed", "device", "renderer",
                 "refine_grid", "refine_iterations"):
