@@ -41,7 +41,7 @@ def test_a_refinement_costs_the_fit_again_times_the_measured_factor():
     job = _fit()
     cuda, cpu = PROFILES["cuda"], PROFILES["cpu"]
     fit_s = estimate_job(job, info, cuda, 2000)
-    assert refinement_estimate(job, info, cuda, 2000) == pytest.approx((fit_s - cuda.startup) * 2.7)
+    assert refinement_estimate(job, info, cuda, 2000) == pytest.approx((fit_s - cuda.startup) * 4.0)
     assert refinement_estimate(job, info, cpu, 2000) == 0.0  # auto on a CPU: no refit
     forced = _fit(refine_grid=True)
     assert refinement_estimate(forced, info, cpu, 2000) == pytest.approx(
@@ -61,8 +61,10 @@ def test_the_plan_gives_the_wall_time_if_every_fit_refines(tmp_path, capsys):
     assert plan["refinable_fits"] == 2 and len(fits) == 2
     # the two fits run side by side after generation and stage 0: refining both adds one refinement
     added = plan["estimated_wall_s_if_all_refined"] - plan["estimated_wall_s"]
-    assert added == pytest.approx((fits[0] - PROFILES["cuda"].startup) * 2.7, abs=1.0)
-    assert "refine_grid" in plan["note"] and "2.7x" in plan["note"]
+    factor = PROFILES["cuda"].refine_factor
+    assert factor == pytest.approx(4.0)  # a full-size fit alone on an H200: refit physics / first physics 4.1x
+    assert added == pytest.approx((fits[0] - PROFILES["cuda"].startup) * factor, abs=1.0)
+    assert "refine_grid" in plan["note"] and f"{factor:g}x" in plan["note"]
     assert not (tmp_path / "bench").exists() and not (tmp_path / "suite").exists()  # a dry run writes nothing
 
     capsys.readouterr()

@@ -37,9 +37,12 @@ class DeviceProfile:
         image_metric_per_mpix: PSNR + SSIM of one image, per megapixel.
         generate_per_frame: simulating and rendering one frame of a synthetic scene (all cameras).
         refine_factor: a fit refined at half the grid spacing (``--refine-grid``) costs this many
-            times the first fit's work (measured on CUDA: 1.4x with two fits sharing an H100, 1.8-3.4x,
-            mean 2.7x, with five sharing an H200, whose first fits did not fill it and whose refined
-            fits did; about 8x on 2 CPU cores; ``docs/limits.md``).
+            times the first fit's work. Measured on CUDA: a full-size sand fit alone on an H200, 4.1x
+            (the whole refit: physics 579 s after 143 s; half the curriculum: 325 s after 154 s,
+            rounds 33-34 of ``docs/results/paper_size.md``); 1.8-3.4x, mean 2.7x, with five fits
+            sharing an H200, whose first fits did not fill it and whose refined fits did; 1.4x with
+            two sharing an H100. About 8x on 2 CPU cores (``docs/limits.md``). The CUDA profile takes
+            the fit alone on the card, as ``projo4d run`` and ``--jobs-per-gpu 1`` run it.
     """
 
     name: str
@@ -55,7 +58,7 @@ class DeviceProfile:
     emd_frame: float
     image_metric_per_mpix: float
     generate_per_frame: float
-    refine_factor: float = 2.7
+    refine_factor: float = 4.0
 
 
 PROFILES: dict[str, DeviceProfile] = {
