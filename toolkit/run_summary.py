@@ -54,6 +54,8 @@ def run_summary(module, evaluation: dict, timings: dict, files: Sequence[Path]) 
         "v0_estimate": getattr(module, "v0_estimate", None),
         # where v0 started (estimate, given, zero, no estimate) and how a [S] stage resolved
         "v0_origin": getattr(module, "v0_origin", None),
+        # does the body fall at g in the folder's frame times and units (None: too few free-flight frames)
+        "time_scale": getattr(module, "time_scale", None),
     }
 
 
@@ -87,6 +89,9 @@ def format_summary(summary: dict) -> str:
         from toolkit.scene.coverage import lost_object_message
 
         lines.append("WARNING " + lost_object_message(coverage))
+    time_scale = summary.get("time_scale") or {}
+    if time_scale and not time_scale.get("agrees", True):
+        lines.append("WARNING " + time_scale.get("message", "the body does not fall at g in the folder's frame times"))
     silhouettes = summary.get("silhouettes") or {}
     if silhouettes.get("disagree"):  # the warning before stage 0 has scrolled away by now
         lines.append("WARNING " + silhouettes.get("message", "the fitting cameras' silhouettes disagree"))

@@ -48,6 +48,7 @@ from toolkit.physics.objective import FitObjectiveMixin
 from toolkit.physics.prediction import PredictionMixin
 from toolkit.physics.starting_state import (StepStream, cosine_with_warmup, free_flight_curriculum, initial_v0,
                                              rigid_shift, surface_particles, velocity_start_curriculum, warn_if_zero_start_is_held)
+from toolkit.physics.time_scale import report_time_scale
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -242,6 +243,8 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
             self.hparams["v0_init"] = start.hparam[0]  # None or 3 numbers (a resume re-estimates the same)
         #: the stage-0 ballistic estimate v0 started from (``None`` when it did not)
         self.v0_estimate: Optional[dict] = start.estimate
+        #: does the body fall at g in the folder's times and units (``TimeScaleCheck.to_dict()``; None: too few frames)
+        self.time_scale: Optional[dict] = report_time_scale(inp, cfg)
         # a stage window "@ff" becomes this clip's frames before ground contact (a resume sets the same)
         self.curriculum = free_flight_curriculum(self.curriculum, self.material.registry_name or None, self.v0_estimate, inp, cfg)
         #: where v0 started, and how a ``[S]`` stage resolved (``"held"``/``"fitted"``; None without one)

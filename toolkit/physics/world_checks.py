@@ -14,6 +14,9 @@ physically wrong without any error, so before the fit:
   or a sideways part ``> 0.5 |g|`` that dominates the along-gravity part is a warning (contact and
   reconstruction noise can fool it, so it never stops a run).
 
+How *fast* the body falls (frame times, length units) is checked by :mod:`toolkit.physics.time_scale`
+when the physics module is built.
+
 Both messages name the world settings in use. ``world_meta`` is the plain dict the pipeline keeps in
 ``PhysicsInput.meta["world"]`` and in ``RUN/world.json``.
 """
