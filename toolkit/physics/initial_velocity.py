@@ -45,6 +45,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from toolkit.physics.world_checks import fit_free_parabola
+
 __all__ = ["describe_estimate", "free_flight_frames", "V0Estimate", "estimate_initial_velocity", "initial_velocity_from_input",
            "CONTACT_BAND_CELLS",
            "CONTACT_FIT_FRAMES", "TOUCH_TOLERANCE_CELLS"]
@@ -106,15 +108,13 @@ def free_flight_frames(est: Optional[dict]) -> Optional[int]:
 def _fit(t: np.ndarray, x: np.ndarray, gravity: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least squares of x (K, 3) on t (K,): ``x0 + v t + g t^2/2`` (g known) or with a free
     acceleration when ``gravity`` is None. Returns (x0, v, fitted (K, 3))."""
-    if gravity is not None:
-        y = x - 0.5 * np.outer(t * t, gravity)
-        A = np.stack([np.ones_like(t), t], axis=1)
-    else:
-        y = x
-        A = np.stack([np.ones_like(t), t, 0.5 * t * t], axis=1)
+    if gravity is None:
+        coef, A = fit_free_parabola(x, t)
+        return coef[0], coef[1], A @ coef
+    y = x - 0.5 * np.outer(t * t, gravity)
+    A = np.stack([np.ones_like(t), t], axis=1)
     coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    fitted = A @ coef + (0.5 * np.outer(t * t, gravity) if gravity is not None else 0.0)
-    return coef[0], coef[1], fitted
+    return coef[0], coef[1], A @ coef + 0.5 * np.outer(t * t, gravity)
 
 
 def estimate_initial_velocity(

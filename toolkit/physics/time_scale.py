@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from toolkit.physics.initial_velocity import CONTACT_BAND_CELLS
+from toolkit.physics.world_checks import fit_free_parabola
 
 __all__ = ["MIN_FRAMES", "RATIO_TOLERANCE", "SE_MIN_DOF", "TimeScaleCheck", "check_time_scale", "time_scale_from_input",
            "time_scale_message", "report_time_scale"]
@@ -155,8 +156,7 @@ def check_time_scale(surfaces: Sequence[torch.Tensor | np.ndarray], times: Seque
         return None
     t = t_all[:k] - t_all[0]
     x = np.stack(cents)
-    A = np.stack([np.ones_like(t), t, 0.5 * t * t], axis=1)
-    coef, *_ = np.linalg.lstsq(A, x, rcond=None)
+    coef, A = fit_free_parabola(x, t)
     accel = coef[2]
     g_hat = g / g_norm
     ratio = float(accel @ g_hat) / g_norm

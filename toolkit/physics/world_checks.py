@@ -35,6 +35,7 @@ __all__ = [
     "WorldError",
     "centroid_acceleration",
     "check_motion",
+    "fit_free_parabola",
     "check_start_above_ground",
     "check_world",
     "read_world_meta",
@@ -115,13 +116,20 @@ def check_start_above_ground(particles: np.ndarray, dx: float, meta: Optional[di
     return lowest
 
 
-def centroid_acceleration(centroids: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """(3,) acceleration (m/s^2) of the least-squares parabola ``c0 + v t + a t^2 / 2`` through
-    (K, 3) centroids at (K,) times (K >= 3)."""
+def fit_free_parabola(centroids: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares of (K, 3) points on ``c0 + v t + a t^2 / 2`` at (K,) times (K >= 3; ``t`` from
+    ``times[0]``). Returns the (3, 3) coefficients (rows ``c0``, ``v``, ``a``) and the (K, 3) design
+    matrix ``[1, t, t^2 / 2]``."""
     t = np.asarray(times, dtype=np.float64) - float(times[0])
     A = np.stack([np.ones_like(t), t, 0.5 * t * t], 1)
     coef, *_ = np.linalg.lstsq(A, np.asarray(centroids, dtype=np.float64), rcond=None)
-    return coef[2]
+    return coef, A
+
+
+def centroid_acceleration(centroids: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(3,) acceleration (m/s^2) of the least-squares parabola ``c0 + v t + a t^2 / 2`` through
+    (K, 3) centroids at (K,) times (K >= 3)."""
+    return fit_free_parabola(centroids, times)[0][2]
 
 
 def check_motion(centroids: np.ndarray, times: np.ndarray, gravity: Sequence[float],
