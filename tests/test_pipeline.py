@@ -39,6 +39,11 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
     assert "grid check: halving dx (0.04 -> 0.02 m)" in printed and "grid_check_s" in summary["timings_s"]
     ev = json.loads((out / "evaluation" / "evaluation.json").read_text())
     assert len(ev["geometry"]["cd_per_frame"]) == 6 and ev["n_train"] == 5
+    # how far the prediction moves across the parameters' intervals: every frame, none at frame 0, printed
+    spread = summary["forecast_spread"]
+    assert len(spread["spread_mm"]) == 6 and spread["spread_mm"][0] == pytest.approx(0.0, abs=1e-3)
+    assert spread["rollouts"] >= 2 and max(spread["spread_mm"]) > 0 and spread["n_train"] == 5
+    assert "across the parameters' intervals the prediction moves" in printed
     assert set(ev["images"]) == {"all_cameras", "fitted_cameras", "held_out_cameras"}
     for name in ("trajectories.png", "per_frame.png", "prediction_vs_truth_future.png", "grid_check.png"):
         assert (out / "report" / name).stat().st_size > 1000

@@ -389,8 +389,13 @@ def evaluate_and_report(module, run: Path, s: RunSettings, timings: dict) -> dic
                          evaluation, inp.ground_truth, inp.images.numpy(), renders, cams,
                          uncertainty=module.uncertainty_result, grid_check=grid)
     timings["total_s"] = timings.get("total_s", 0.0) + timings["evaluation_s"] + timings["grid_check_s"]
+    from toolkit.physics.forecast_spread import forecast_spread
+
+    # how far the prediction moves across the parameters' intervals (the future may turn on one the clip leaves open)
+    summary_spread = forecast_spread(module)
     summary = run_summary(module, evaluation, timings, files)
     summary["grid_check"] = grid
+    summary["forecast_spread"] = summary_spread
     if (run / "silhouettes.json").is_file():  # the cameras' agreement, checked before stage 0
         summary["silhouettes"] = json.loads((run / "silhouettes.json").read_text())
     annotate_grid(summary["parameters"], grid, module.estimate()["params"])

@@ -80,6 +80,10 @@ def format_summary(summary: dict) -> str:
     if fut.get("cd") is not None:
         lines.append(f"future frames: CD {fut['cd']:.3f}  EMD {fut['emd']:.4f}  PSNR {fut['psnr'] or float('nan'):.2f}  "
                      f"SSIM {fut['ssim'] or float('nan'):.3f}")
+    if summary.get("forecast_spread"):
+        from toolkit.physics.forecast_spread import describe_spread
+
+        lines.append(describe_spread(summary["forecast_spread"]))
     if summary.get("grid_check"):
         from toolkit.physics.grid_check import format_grid_check
 
