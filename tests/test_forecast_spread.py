@@ -39,6 +39,11 @@ def test_before_contact_v0_moves_the_body_ballistically_and_the_material_not_at_
     assert e["driver"]["parameter"] == "E" and e["driver"]["mm"] == pytest.approx(e["spread_mm"][-1])
     after = _state(toss)
     assert after[0] == before[0] and torch.equal(after[1], before[1])
+    # the estimate's prediction handed in (as the pipeline hands in the evaluation's) gives the same spread
+    with torch.no_grad():
+        _, base = toss.simulate(toss.input.n_frames - 1, frozenset())
+    given = forecast_spread(toss, {"parameters": {"v0_x": {"low": V0[0] - 0.1, "high": V0[0] + 0.1}}}, base=base.numpy())
+    assert given["spread_mm"] == pytest.approx(v["spread_mm"], abs=1e-6)
 
 
 def test_a_narrower_interval_spreads_the_future_less(toss):

@@ -44,6 +44,7 @@ def test_run_with_oracle_geometry_writes_everything_and_resumes(scene, tmp_path,
     assert len(spread["spread_mm"]) == 6 and spread["spread_mm"][0] == pytest.approx(0.0, abs=1e-3)
     assert spread["rollouts"] >= 2 and max(spread["spread_mm"]) > 0 and spread["n_train"] == 5
     assert "across the parameters' intervals the prediction moves" in printed
+    assert "forecast_spread_s" in summary["timings_s"]
     assert set(ev["images"]) == {"all_cameras", "fitted_cameras", "held_out_cameras"}
     for name in ("trajectories.png", "per_frame.png", "prediction_vs_truth_future.png", "grid_check.png"):
         assert (out / "report" / name).stat().st_size > 1000

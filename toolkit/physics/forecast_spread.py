@@ -40,7 +40,8 @@ def _raw_of(module, name: str, value: float) -> Optional[float]:
     return float(value)
 
 
-def forecast_spread(module, uncertainty: Optional[dict] = None, n_frames: Optional[int] = None) -> Optional[dict]:
+def forecast_spread(module, uncertainty: Optional[dict] = None, n_frames: Optional[int] = None,
+                    base: Optional[np.ndarray] = None) -> Optional[dict]:
     """The forecast spread of a fitted module across its parameters' intervals.
 
     Args:
@@ -48,6 +49,8 @@ def forecast_spread(module, uncertainty: Optional[dict] = None, n_frames: Option
         uncertainty: its :meth:`~toolkit.physics.InversePhysicsModule.uncertainty` result (default:
             ``module.uncertainty_result``); ``None`` there means nothing to spread: returns None.
         n_frames: frames to predict (default: the clip's, training and future).
+        base: the estimate's own prediction, (T, N, 3) metres, when the caller has it already
+            (the evaluation's ``prediction.npz``); simulated here otherwise.
 
     Returns:
         ``{"spread_mm": [T floats], "train_mm", "future_mm", "n_train", "driver": {"parameter",
@@ -69,8 +72,9 @@ def forecast_spread(module, uncertainty: Optional[dict] = None, n_frames: Option
     rollouts = 0
     try:
         with torch.no_grad(), module.substeps_unlogged():
-            _, base = module.simulate(T - 1, frozenset())
-            base = base.double()
+            if base is None:
+                _, base = module.simulate(T - 1, frozenset())
+            base = torch.as_tensor(base, device=module.v0.device).double()
             spread = np.zeros(T)
             driver = {"parameter": None, "end": None, "value": None, "mm": 0.0}
             per_parameter: dict[str, list[float]] = {}
