@@ -17,7 +17,10 @@ particles, so the row puts the image loss and the particles' distance to the tru
 the same rollout (where the two prefer different values, the images pull the estimate somewhere the
 motion does not).
 
-Output: one JSON line of settings, then one per value: ``{param: value, "geometry", "image",
+Output: one JSON line of settings; two reference lines, ``{"point": "fit" | "truth", "params",
+"v0", ...scores}``: every parameter and v0 as fitted, then all at the truth (so a sweep says
+whether the fit's own loss ranks the fit's point below the truth's: a biased loss, or above it:
+the optimizer stopped short); then one line per value: ``{param: value, "geometry", "image",
 "image_per_frame", "chamfer_mm", "chamfer_mm_per_frame"}`` (frames 1 .. n_train-1).
 
 Usage::
@@ -51,12 +54,9 @@ def main(argv=None) -> int:
                     help="the same as --gaussian-shape deformed")
     ap.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
-    from toolkit.run_validation import SettingsError, check_device
+    from toolkit.run_validation import parse_device_option
 
-    try:
-        args.device = check_device(args.device)
-    except SettingsError as err:
-        ap.error(str(err))
+    args.device = parse_device_option(ap, args.device)
 
     import torch
 
@@ -74,9 +74,11 @@ def main(argv=None) -> int:
     names = list(module.material.param_names)
     if args.param not in names:
         raise SystemExit(f"{args.param!r} is not a parameter of {module.material.registry_name}: {', '.join(names)}")
+    fitted_v0 = module.v0.detach().clone()
+    fitted = module.material_params().detach().clone()
     with torch.no_grad():
         module.v0.copy_(torch.tensor(gt["v0"], dtype=module.v0.dtype))
-    base = module.material_params().detach().clone()
+    base = fitted.clone()
     for j, name in enumerate(names):
         if name in gt["params"]:
             base[j] = gt["params"][name]
@@ -87,19 +89,25 @@ def main(argv=None) -> int:
         module.set_gaussian_shape(args.gaussian_shape)
     print(json.dumps({"run": str(args.run), "truth": gt["params"], "param": args.param, "frames": frames,
                       "gaussian_shape": module.gaussian_shape}), flush=True)
-    for value in args.values:
-        params = base.clone()
-        params[names.index(args.param)] = value
-        out = module.simulator.rollout(x0, module.v0.detach(), params, gravity=module.gravity.detach(),
+
+    def score(params, v0) -> dict:
+        out = module.simulator.rollout(x0, v0, params, gravity=module.gravity.detach(),
                                        effect_params=module.effect_params.detach(), n_frames=max(frames))
         whole = module.probe_losses(out.positions, module.stages[-1], cams, frames)
         per = [module.probe_losses(out.positions, module.stages[-1], cams, [f])["image"] for f in frames]
         chamfer = [1e3 * mean_nearest_distance(out.positions[f].detach().cpu().numpy(),
                                                module.input.surfaces[f].cpu().numpy()) for f in frames]
-        print(json.dumps({args.param: value, "geometry": whole["geometry"], "image": whole["image"],
-                          "image_per_frame": [round(x, 6) for x in per],
-                          "chamfer_mm": round(sum(chamfer) / len(chamfer), 4),
-                          "chamfer_mm_per_frame": [round(x, 3) for x in chamfer]}), flush=True)
+        return {"geometry": whole["geometry"], "image": whole["image"], "image_per_frame": [round(x, 6) for x in per],
+                "chamfer_mm": round(sum(chamfer) / len(chamfer), 4), "chamfer_mm_per_frame": [round(x, 3) for x in chamfer]}
+
+    with torch.no_grad():
+        for point, params, v0 in (("fit", fitted, fitted_v0), ("truth", base, module.v0.detach())):
+            print(json.dumps({"point": point, "params": dict(zip(names, params.tolist())), "v0": v0.tolist(),
+                              **score(params, v0)}), flush=True)
+        for value in args.values:
+            params = base.clone()
+            params[names.index(args.param)] = value
+            print(json.dumps({args.param: value, **score(params, module.v0.detach())}), flush=True)
     return 0
 
 

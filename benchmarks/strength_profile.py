@@ -54,12 +54,9 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=8, help="Levenberg-Marquardt iterations per refit (default 8)")
     ap.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
-    from toolkit.run_validation import SettingsError, check_device
+    from toolkit.run_validation import parse_device_option
 
-    try:
-        args.device = check_device(args.device)
-    except SettingsError as err:
-        ap.error(str(err))
+    args.device = parse_device_option(ap, args.device)
     if args.surfaces_from and not (Path(args.surfaces_from) / "physics_input.pt").is_file():
         ap.error(f"--surfaces-from {args.surfaces_from}: no physics_input.pt there (expected a run folder of the same scene)")
 

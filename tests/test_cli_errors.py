@@ -483,3 +483,27 @@ def test_ctrl_c_is_one_line_with_status_130(tiny, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("projo4d run: interrupted")
     assert lines[0].endswith("rerun the same command to resume")
     assert "Traceback" not in stderr and "future frames" not in stdout
+
+
+def test_a_script_device_option_is_resolved_or_refused_with_its_value(capsys):
+    """``parse_device_option``: ``cpu`` and ``auto`` resolve; a malformed name and (without a GPU)
+    ``cuda`` end the script through ``parser.error`` (exit status 2) with the value and what is
+    expected."""
+    import argparse
+
+    import torch
+
+    from toolkit.run_validation import parse_device_option
+
+    ap = argparse.ArgumentParser(prog="script.py")
+    assert parse_device_option(ap, "cpu") == "cpu"
+    assert parse_device_option(ap, "auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    expected = {"gpu0": "expected 'auto', 'cpu', 'cuda' or 'cuda:N'", "cuda:99": "CUDA device"}
+    if not torch.cuda.is_available():
+        expected = {**expected, "cuda": "use 'cpu' or 'auto'", "cuda:99": "use 'cpu' or 'auto'"}
+    for name, why in expected.items():
+        with pytest.raises(SystemExit) as stop:
+            parse_device_option(ap, name)
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert f"script.py: error: device = {name!r}" in err and why in err, err

@@ -199,3 +199,24 @@ def test_deformed_gaussians_travel_with_the_twin(tmp_path):
     ply = load_ply(tmp_path / "seq" / f"gaussians_{T:03d}.ply")
     want = covariance_3d(module.log_scales.detach(), module.quats.detach(), last)
     torch.testing.assert_close(covariance_3d(ply.log_scales, ply.quats), want, atol=1e-7, rtol=1e-3)
+
+
+def test_a_kept_stage_end_reloads_the_fit_as_it_stood_and_reruns_its_search(fitted_run):
+    """``load_fitted_module(checkpoint=...)`` gives the fit at a kept stage end: at the end of stage
+    1 (iteration 4, before the material was fitted) the coarse search, run again on the stage that
+    fits ``M``, picks exactly what the run's own search picked (what benchmarks/search_check.py
+    relies on); a name that is not kept raises an error naming the path."""
+    from toolkit.physics.coarse_search import coarse_search
+    from toolkit.pipeline import load_fitted_module
+
+    record = json.loads((fitted_run / "physics" / "material_search.json").read_text())
+    early = load_fitted_module(fitted_run, checkpoint="stage_00_end.ckpt")
+    last = load_fitted_module(fitted_run)
+    assert early.curriculum_step == record["iteration"] == 4 and last.curriculum_step == 8
+    again = coarse_search(early, next(s for s in early.stages if "M" in s.groups))
+    assert again["start"] == pytest.approx(record["start"], rel=1e-6)
+    assert again["best"] == pytest.approx(record["best"], rel=1e-6)
+    assert again["best_loss"] == pytest.approx(record["best_loss"], rel=1e-5)
+    assert not torch.equal(early.particle_offset, last.particle_offset)  # the body moved on after the stage end
+    with pytest.raises(FileNotFoundError, match="stage_07_end.ckpt does not exist"):
+        load_fitted_module(fitted_run, checkpoint="stage_07_end.ckpt")

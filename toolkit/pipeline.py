@@ -245,13 +245,16 @@ def training_frames(scene, n_train: Optional[int]) -> int:
     return max(1, min(14, T - 1))
 
 
-def load_fitted_module(run: str | Path, device: str = "cpu"):
-    """The fitted :class:`~toolkit.physics.InversePhysicsModule` of a run folder (last checkpoint)."""
+def load_fitted_module(run: str | Path, device: str = "cpu", checkpoint: str = "last.ckpt"):
+    """The fitted :class:`~toolkit.physics.InversePhysicsModule` of a run folder.
+
+    ``checkpoint`` names the file in ``physics/checkpoints`` (default the last; a kept stage end
+    such as ``stage_01_end.ckpt`` gives the fit as it stood then)."""
     from toolkit.mpm import SimConfig
     from toolkit.physics import InversePhysicsModule
 
     run = Path(run)
-    ckpt_path = run / "physics" / "checkpoints" / "last.ckpt"
+    ckpt_path = run / "physics" / "checkpoints" / checkpoint
     if not ckpt_path.is_file():
         raise FileNotFoundError(f"{ckpt_path} does not exist: fit the run first (projo4d run)")
     ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True)

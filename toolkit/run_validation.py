@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SettingsError", "validate_run_settings", "check_plain_fields", "check_device"]
+__all__ = ["SettingsError", "validate_run_settings", "check_plain_fields", "check_device", "parse_device_option"]
 
 #: the most optimizer iterations a curriculum may have in all
 _MAX_ITERATIONS = 1_000_000
@@ -57,6 +57,15 @@ def check_device(name: str) -> str:
                                                 f"cuda:0..cuda:{torch.cuda.device_count() - 1}")
         return name
     raise SettingsError("device", name, "expected 'auto', 'cpu', 'cuda' or 'cuda:N'")
+
+
+def parse_device_option(parser: Any, name: str) -> str:
+    """:func:`check_device` for a command-line script: the resolved device, or ``parser.error``
+    (an ``argparse.ArgumentParser``'s: usage and the message, exit status 2) naming the value."""
+    try:
+        return check_device(name)
+    except SettingsError as err:
+        parser.error(str(err))
 
 
 def _check(field: str, value: Any, fn) -> Any:

@@ -1,0 +1,127 @@
+"""Where the coarse material search starts a fit, against the truth, by the fit's own score (issue #20).
+
+For each finished run folder of a scene with ground truth, loads the fit as it stood at a kept
+stage end (by default the one just before the first stage that optimizes ``M``, where
+:func:`toolkit.physics.coarse_search.coarse_search` runs: the positions, appearance and v0 the
+search saw), runs
+the search again on the stage that optimizes ``M``, and scores the truth's material parameters
+with the same loss on the same frames. Where the truth scores lower than the search's pick, the
+search, not the loss, put the fit's start in the wrong place.
+
+One JSON line per run::
+
+    {"run", "pick": {name: value}, "pick_loss", "truth": {...}, "truth_loss", "truth_true_v0_loss",
+     "pick_true_v0_loss", "v0", "true_v0", "start_error": {name: decades or absolute}, "rollouts",
+     "seconds", "paths": [...]}
+
+``truth_true_v0_loss`` and ``pick_true_v0_loss`` score the truth's material and the pick with the
+true initial velocity instead of the fitted one: where the truth wins only then, the initial
+velocity fitted before the search, not the body or the appearance, biased the search's loss.
+
+Usage::
+
+    python benchmarks/search_check.py BENCH/runs/plasticine/*/cams3/progressive
+    python benchmarks/search_check.py RUN --checkpoint stage_00_end.ckpt --device cuda
+
+Benchmarks are never part of the test suite.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def _score(module, stage, frames: list[int], values: dict[str, float], v0=None) -> float:
+    """The fit's own loss of ``stage`` on ``frames`` with the material at ``values`` and the
+    initial velocity ``v0`` (m/s; default as fitted), the rest as fitted."""
+    import torch
+
+    names = list(module.material.param_names)
+    params = module.material_params().detach().clone()
+    for n, v in values.items():
+        params[names.index(n)] = v
+    x0 = (module.particles0 + module.particle_offset).detach()
+    with torch.no_grad(), module.simulator.substep_plan_restored():
+        v = module.v0.detach() if v0 is None else torch.as_tensor(v0, dtype=module.v0.dtype, device=module.v0.device)
+        out = module.simulator.rollout(x0, v, params, gravity=module.gravity.detach(),
+                                       effect_params=module.effect_params.detach(), n_frames=max(frames))
+        return float(module.probe_losses(out.positions, stage, list(module.input.train_cameras), frames)["total"])
+
+
+def _error(module, name: str, value: float, truth: float) -> float:
+    if module.material.param(name).transform == "log10":
+        return math.log10(value / truth)
+    return value - truth
+
+
+def _checkpoint(run: Path, name: str) -> str:
+    """``name``, or for ``auto`` the kept stage end saved at the iteration the run's search ran
+    (``physics/material_search.json``'s ``iteration``)."""
+    if name != "auto":
+        return name
+    import torch
+
+    record = run / "physics" / "material_search.json"
+    if not record.is_file():
+        return "(no physics/material_search.json to place the search)"
+    iteration = json.loads(record.read_text())["iteration"]
+    for ckpt in sorted((run / "physics" / "checkpoints").glob("stage_*_end.ckpt")):
+        state = torch.load(ckpt, map_location="cpu", weights_only=True).get("projo4d", {})
+        if state.get("curriculum_step") == iteration:
+            return ckpt.name
+    return f"(no stage end kept at iteration {iteration})"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", help="finished run folders (physics/checkpoints/) of scenes with ground truth")
+    ap.add_argument("--checkpoint", default="auto",
+                    help="kept checkpoint to start from (default: the stage end before the first stage fitting M)")
+    ap.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default cpu)")
+    args = ap.parse_args(argv)
+    from toolkit.run_validation import parse_device_option
+
+    args.device = parse_device_option(ap, args.device)
+    picks = {r: _checkpoint(Path(r), args.checkpoint) for r in args.runs}
+    missing = [f"{r}/physics/checkpoints/{c}" for r, c in picks.items() if not (Path(r) / "physics" / "checkpoints" / c).is_file()]
+    if missing:
+        ap.error(f"--checkpoint {args.checkpoint}: no such file: {', '.join(missing)}")
+
+    from toolkit.verbosity import configure_output
+
+    configure_output(False)
+    from toolkit.physics.coarse_search import coarse_search
+    from toolkit.pipeline import load_fitted_module
+
+    for run in args.runs:
+        module = load_fitted_module(run, device=args.device, checkpoint=picks[run])
+        gt = module.input.ground_truth or {}
+        if not gt.get("params"):
+            print(json.dumps({"run": run, "skipped": "no ground truth"}), flush=True)
+            continue
+        stage = next(s for s in module.stages if "M" in s.groups)
+        result = coarse_search(module, stage)
+        truth = {n: float(gt["params"][n]) for n in result["parameters"] if n in gt["params"]}
+        truth_loss = _score(module, stage, result["frames"], truth)
+        true_v0_loss = _score(module, stage, result["frames"], truth, gt["v0"])
+        pick_true_v0_loss = _score(module, stage, result["frames"], result["best"], gt["v0"])
+        print(json.dumps({
+            "run": run, "checkpoint": picks[run], "stage": stage.name, "pick": result["best"], "pick_loss": result["best_loss"], "truth": truth,
+            "truth_loss": truth_loss, "truth_true_v0_loss": true_v0_loss, "pick_true_v0_loss": pick_true_v0_loss,
+            "v0": module.v0.detach().tolist(), "true_v0": gt["v0"], "start": result["start"], "start_loss": result["start_loss"],
+            "start_error": {n: round(_error(module, n, v, truth[n]), 3) for n, v in result["best"].items() if n in truth},
+            "paths": result["paths"], "rollouts": result["rollouts"], "seconds": round(result["seconds"], 2),
+        }), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
