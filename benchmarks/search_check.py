@@ -22,6 +22,7 @@ Usage::
 
     python benchmarks/search_check.py BENCH/runs/plasticine/*/cams3/progressive
     python benchmarks/search_check.py RUN --checkpoint stage_00_end.ckpt --device cuda
+    python benchmarks/search_check.py BENCH/runs/plasticine/*/cams3/progressive --joint-yield
 
 Benchmarks are never part of the test suite.
 """
@@ -85,6 +86,8 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="finished run folders (physics/checkpoints/) of scenes with ground truth")
     ap.add_argument("--checkpoint", default="auto",
                     help="kept checkpoint to start from (default: the stage end before the first stage fitting M)")
+    ap.add_argument("--joint-yield", action="store_true",
+                    help="search with coarse_search(joint_yield=True): the first parameter and the yield parameter on one grid")
     ap.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
     from toolkit.run_validation import parse_device_option
@@ -108,13 +111,13 @@ def main(argv=None) -> int:
             print(json.dumps({"run": run, "skipped": "no ground truth"}), flush=True)
             continue
         stage = next(s for s in module.stages if "M" in s.groups)
-        result = coarse_search(module, stage)
+        result = coarse_search(module, stage, joint_yield=args.joint_yield)
         truth = {n: float(gt["params"][n]) for n in result["parameters"] if n in gt["params"]}
         truth_loss = _score(module, stage, result["frames"], truth)
         true_v0_loss = _score(module, stage, result["frames"], truth, gt["v0"])
         pick_true_v0_loss = _score(module, stage, result["frames"], result["best"], gt["v0"])
         print(json.dumps({
-            "run": run, "checkpoint": picks[run], "stage": stage.name, "pick": result["best"], "pick_loss": result["best_loss"], "truth": truth,
+            "run": run, "checkpoint": picks[run], "joint_yield": args.joint_yield, "stage": stage.name, "pick": result["best"], "pick_loss": result["best_loss"], "truth": truth,
             "truth_loss": truth_loss, "truth_true_v0_loss": true_v0_loss, "pick_true_v0_loss": pick_true_v0_loss,
             "v0": module.v0.detach().tolist(), "true_v0": gt["v0"], "start": result["start"], "start_loss": result["start_loss"],
             "start_error": {n: round(_error(module, n, v, truth[n]), 3) for n, v in result["best"].items() if n in truth},

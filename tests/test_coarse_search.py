@@ -149,3 +149,33 @@ def test_search_runs_once_at_the_first_material_iteration(tiny_input, tmp_path):
     assert g.material_search is None and not (tmp_path / "b" / "material_search.json").exists()
     with pytest.raises(ValueError, match="material_init must be 'search' or 'given'"):
         InversePhysicsModule(tiny_input, material_init="grid")
+
+
+def test_the_product_grid_starts_paths_at_its_lowest_local_minima():
+    """``joint_yield``'s first sweep: every point of the first x yield grid is scored once, and the
+    paths start at the lowest 4-neighbour local minima (here two basins, 0.0 at (1, 3) and 0.5 at
+    (4, 0)), the other coordinates left as they were."""
+    from toolkit.physics.coarse_search import _grid_minima
+
+    def loss(a: float, b: float) -> float:
+        return min((a - 1) ** 2 + (b - 3) ** 2, 0.5 + (a - 4) ** 2 + b**2)
+
+    scored = []
+
+    def evaluate(coords: dict, path: int) -> float:
+        scored.append((coords["a"], coords["b"], path))
+        return loss(coords["a"], coords["b"])
+
+    grid_a, grid_b = np.arange(5.0), np.arange(4.0)
+    origins = _grid_minima(evaluate, {"a": 0.0, "b": 0.0, "c": 7.0}, "a", grid_a, "b", grid_b, 2)
+    assert origins == [{"a": 1.0, "b": 3.0, "c": 7.0}, {"a": 4.0, "b": 0.0, "c": 7.0}]
+    assert sorted(scored) == sorted((a, b, 0) for a in grid_a for b in grid_b)
+    assert _grid_minima(evaluate, {"a": 0.0, "b": 0.0, "c": 7.0}, "a", grid_a, "b", grid_b, 1) == origins[:1]
+
+
+def test_the_joint_yield_option_leaves_a_material_without_a_yield_surface_alone(tiny_input):
+    """Elastic E and nu: no yield parameter to pair with, so ``joint_yield`` searches exactly as the
+    default does (the same points, the same pick)."""
+    m = _module(tiny_input, optimize_params=["E", "nu"])
+    plain, joint = coarse_search(m, m.stages[0]), coarse_search(m, m.stages[0], joint_yield=True)
+    assert joint["best"] == plain["best"] and [p["params"] for p in joint["points"]] == [p["params"] for p in plain["points"]]

@@ -23,7 +23,10 @@ Method (coordinate-wise, coarse to fine):
 3. materials with a yield surface (a ``yield_stress`` or ``friction_angle`` parameter) have
    branches (a body that yields or not) that a single coordinate path can miss: the
    :data:`YIELD_STARTS` best local minima of the first parameter's grid each start a path
-   (multi-start) and the lowest final loss wins.
+   (multi-start) and the lowest final loss wins. With ``joint_yield`` the first parameter is swept
+   together with the yield parameter on their product grid, and the paths start from that grid's
+   best local minima (the first parameter's line at the yield parameter's guess can fall all the
+   way to a stiff edge when the guess is off: ``docs/results/paper_size.md``, round 36).
 
 A rollout that fails (CFL or NaN after the allowed dt halvings, out of the domain) scores
 ``inf``; the simulator's kept dt-halving floor is restored afterwards, so the search leaves the
@@ -115,7 +118,8 @@ def _finite(x: float) -> Optional[float]:
 
 
 def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFAULT_FRAMES,
-                  refinements: int = DEFAULT_REFINEMENTS, starts: Optional[int] = None) -> dict:
+                  refinements: int = DEFAULT_REFINEMENTS, starts: Optional[int] = None,
+                  joint_yield: bool = False) -> dict:
     """Sweep the module's optimized material parameters and return the search record.
 
     Args:
@@ -125,6 +129,11 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         refinements: halvings of the grid step around the best point of each parameter.
         starts: coordinate paths (multi-start); default :data:`YIELD_STARTS` for a material with a
             yield surface (:data:`YIELD_PARAMS`), else 1.
+        joint_yield: for a material whose yield parameter is not its first, sweep the first
+            parameter and the yield parameter together on their product grid (4 x 4 points for
+            plasticine's E and tau_Y) instead of the first alone at the yield parameter's guess;
+            the paths start from the grid's best local minima (4-neighbour) and go on
+            coordinate-wise as before.
 
     Returns:
         a JSON-ready dict: ``parameters`` (names searched), ``frames``, ``cameras``, ``start`` and
@@ -198,19 +207,25 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         first = names[0]
         log_axis, lo, hi, n_pts = axes[first]
         grid = np.linspace(lo, hi, n_pts)
-        scored = line(current, first, grid, 0)
         n_starts = starts if starts is not None else (YIELD_STARTS if set(names) & YIELD_PARAMS else 1)
-        minima = [i for i in range(len(scored)) if (i == 0 or scored[i][1] <= scored[i - 1][1])
-                  and (i == len(scored) - 1 or scored[i][1] <= scored[i + 1][1])]
-        minima = sorted(minima, key=lambda i: scored[i][1])[: max(1, n_starts)] or [0]
+        partner = next((n for n in names[1:] if n in YIELD_PARAMS), None) if joint_yield else None
+        if partner is None:
+            scored = line(current, first, grid, 0)
+            minima = [i for i in range(len(scored)) if (i == 0 or scored[i][1] <= scored[i - 1][1])
+                      and (i == len(scored) - 1 or scored[i][1] <= scored[i + 1][1])]
+            origins = [{**current, first: float(scored[i][0])}
+                       for i in sorted(minima, key=lambda i: scored[i][1])[: max(1, n_starts)] or [0]]
+        else:
+            origins = _grid_minima(evaluate, current, first, grid, partner,
+                                   np.linspace(axes[partner][1], axes[partner][2], axes[partner][3]), max(1, n_starts))
         step0 = float(grid[1] - grid[0]) if len(grid) > 1 else 1.0
         def settle(before: dict, after: dict, path: int) -> dict:
             """Keep a coordinate's move only if it lowers the loss by more than MIN_GAIN (a flat,
             undetermined direction leaves the parameter where it was)."""
             return after if evaluate(after, path) < (1 - MIN_GAIN) * evaluate(before, path) else before
 
-        for k, i in enumerate(minima):
-            coords = settle(current, refine({**current, first: float(scored[i][0])}, first, step0, k), k)
+        for k, origin in enumerate(origins):
+            coords = settle(current, refine(origin, first, step0, k), k)
             for name in names[1:]:
                 _, lo_n, hi_n, n_n = axes[name]
                 g = np.linspace(lo_n, hi_n, n_n)
@@ -231,6 +246,21 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         "points": points, "rollouts": len(points), "seconds": time.perf_counter() - t0,
         "iteration": int(module.curriculum_step),
     }
+
+
+def _grid_minima(evaluate, current: dict, first: str, grid_a, second: str, grid_b, count: int) -> list[dict]:
+    """Score the product grid of ``first`` x ``second`` (path 0) and return the coordinates of its
+    ``count`` lowest 4-neighbour local minima (a point no higher than the grid points beside it)."""
+    table = np.array([[evaluate({**current, first: float(a), second: float(b)}, 0) for b in grid_b] for a in grid_a])
+    minima = []
+    for i in range(table.shape[0]):
+        for j in range(table.shape[1]):
+            beside = [table[i + di, j + dj] for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1))
+                      if 0 <= i + di < table.shape[0] and 0 <= j + dj < table.shape[1]]
+            if all(table[i, j] <= b for b in beside):
+                minima.append((table[i, j], i, j))
+    minima.sort()
+    return [{**current, first: float(grid_a[i]), second: float(grid_b[j])} for _, i, j in minima[:count]] or [current]
 
 
 def _loss_text(x: Optional[float]) -> str:
