@@ -130,10 +130,10 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         starts: coordinate paths (multi-start); default :data:`YIELD_STARTS` for a material with a
             yield surface (:data:`YIELD_PARAMS`), else 1.
         joint_yield: for a material whose yield parameter is not its first, sweep the first
-            parameter and the yield parameter together on their product grid (4 x 4 points for
-            plasticine's E and tau_Y) instead of the first alone at the yield parameter's guess;
-            the paths start from the grid's best local minima (4-neighbour) and go on
-            coordinate-wise as before.
+            parameter and the yield parameter together on their product grid (the yield
+            parameter's grid plus its guess: 4 x 5 points for plasticine's E and tau_Y) instead of
+            the first alone at the yield parameter's guess; the paths start from the grid's best
+            local minima (4-neighbour) and go on coordinate-wise as before.
 
     Returns:
         a JSON-ready dict: ``parameters`` (names searched), ``frames``, ``cameras``, ``start`` and
@@ -216,8 +216,10 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             origins = [{**current, first: float(scored[i][0])}
                        for i in sorted(minima, key=lambda i: scored[i][1])[: max(1, n_starts)] or [0]]
         else:
-            origins = _grid_minima(evaluate, current, first, grid, partner,
-                                   np.linspace(axes[partner][1], axes[partner][2], axes[partner][3]), max(1, n_starts))
+            # the yield parameter's guess is a row of the grid too: the default's line is part of it
+            rows = np.unique(np.append(np.linspace(axes[partner][1], axes[partner][2], axes[partner][3]),
+                                       current[partner]))
+            origins = _grid_minima(evaluate, current, first, grid, partner, rows, max(1, n_starts))
         step0 = float(grid[1] - grid[0]) if len(grid) > 1 else 1.0
         def settle(before: dict, after: dict, path: int) -> dict:
             """Keep a coordinate's move only if it lowers the loss by more than MIN_GAIN (a flat,
