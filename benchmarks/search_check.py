@@ -41,20 +41,18 @@ if str(ROOT) not in sys.path:
 
 
 def _score(module, stage, frames: list[int], values: dict[str, float], v0=None) -> float:
-    """The fit's own loss of ``stage`` on ``frames`` with the material at ``values`` and the
-    initial velocity ``v0`` (m/s; default as fitted), the rest as fitted."""
+    """:func:`~toolkit.physics.coarse_search.candidate_loss` with the material at ``values`` (the
+    others as fitted) and the initial velocity ``v0`` (m/s; default as fitted)."""
     import torch
+
+    from toolkit.physics.coarse_search import candidate_loss
 
     names = list(module.material.param_names)
     params = module.material_params().detach().clone()
     for n, v in values.items():
         params[names.index(n)] = v
-    x0 = (module.particles0 + module.particle_offset).detach()
-    with torch.no_grad(), module.simulator.substep_plan_restored():
-        v = module.v0.detach() if v0 is None else torch.as_tensor(v0, dtype=module.v0.dtype, device=module.v0.device)
-        out = module.simulator.rollout(x0, v, params, gravity=module.gravity.detach(),
-                                       effect_params=module.effect_params.detach(), n_frames=max(frames))
-        return float(module.probe_losses(out.positions, stage, list(module.input.train_cameras), frames)["total"])
+    v = None if v0 is None else torch.as_tensor(v0, dtype=module.v0.dtype, device=module.v0.device)
+    return candidate_loss(module, stage, params, frames, v)
 
 
 def _error(module, name: str, value: float, truth: float) -> float:
@@ -65,20 +63,28 @@ def _error(module, name: str, value: float, truth: float) -> float:
 
 def _checkpoint(run: Path, name: str) -> str:
     """``name``, or for ``auto`` the kept stage end saved at the iteration the run's search ran
-    (``physics/material_search.json``'s ``iteration``)."""
+    (``physics/material_search.json``'s ``iteration``).
+
+    Raises:
+        ValueError: the checkpoint is not there, naming the path and what is expected.
+    """
+    folder = run / "physics" / "checkpoints"
     if name != "auto":
+        if not (folder / name).is_file():
+            raise ValueError(f"{folder / name} does not exist (expected a kept checkpoint of a finished run)")
         return name
     import torch
 
     record = run / "physics" / "material_search.json"
     if not record.is_file():
-        return "(no physics/material_search.json to place the search)"
+        raise ValueError(f"{record} does not exist: the run never ran the coarse search (material_init='search')")
     iteration = json.loads(record.read_text())["iteration"]
-    for ckpt in sorted((run / "physics" / "checkpoints").glob("stage_*_end.ckpt")):
+    for ckpt in sorted(folder.glob("stage_*_end.ckpt")):
         state = torch.load(ckpt, map_location="cpu", weights_only=True).get("projo4d", {})
         if state.get("curriculum_step") == iteration:
             return ckpt.name
-    return f"(no stage end kept at iteration {iteration})"
+    raise ValueError(f"{folder}: no stage_*_end.ckpt saved at iteration {iteration}, where the search ran "
+                     "(name one with --checkpoint)")
 
 
 def main(argv=None) -> int:
@@ -93,10 +99,14 @@ def main(argv=None) -> int:
     from toolkit.run_validation import parse_device_option
 
     args.device = parse_device_option(ap, args.device)
-    picks = {r: _checkpoint(Path(r), args.checkpoint) for r in args.runs}
-    missing = [f"{r}/physics/checkpoints/{c}" for r, c in picks.items() if not (Path(r) / "physics" / "checkpoints" / c).is_file()]
-    if missing:
-        ap.error(f"--checkpoint {args.checkpoint}: no such file: {', '.join(missing)}")
+    picks, problems = {}, []
+    for run in args.runs:
+        try:
+            picks[run] = _checkpoint(Path(run), args.checkpoint)
+        except ValueError as err:
+            problems.append(str(err))
+    if problems:
+        ap.error(f"--checkpoint {args.checkpoint}: " + "; ".join(problems))
 
     from toolkit.verbosity import configure_output
 

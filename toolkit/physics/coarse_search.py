@@ -51,7 +51,7 @@ from toolkit.mpm.config import SimulationError
 if TYPE_CHECKING:  # pragma: no cover
     from toolkit.physics.module import InversePhysicsModule
 
-__all__ = ["coarse_search", "search_and_apply", "search_axis", "score_frames", "YIELD_PARAMS", "YIELD_STARTS", "BOUNDED_POINTS",
+__all__ = ["coarse_search", "candidate_loss", "search_and_apply", "search_axis", "score_frames", "YIELD_PARAMS", "YIELD_STARTS", "BOUNDED_POINTS",
            "DEFAULT_FRAMES", "DEFAULT_REFINEMENTS", "MIN_GAIN"]
 
 log = logging.getLogger(__name__)
@@ -117,6 +117,26 @@ def _finite(x: float) -> Optional[float]:
     return x if math.isfinite(x) else None
 
 
+def candidate_loss(module: "InversePhysicsModule", stage: Any, params: torch.Tensor, frames: list[int],
+                   v0: Optional[torch.Tensor] = None) -> float:
+    """The fit's own loss of ``stage`` (image + geometric terms, every training camera) on
+    ``frames`` for one candidate: ``params`` the physical material parameters (in the material's
+    order), ``v0`` the initial velocity (m/s; default the module's), everything else as the module
+    holds it. Forward only; the simulator's kept dt-halving floor is restored afterwards.
+
+    Raises:
+        SimulationError, MaterialError: the rollout failed (CFL or NaN after the allowed halvings,
+            out of the domain).
+    """
+    sim = module.simulator
+    with torch.no_grad(), sim.substep_plan_restored():
+        x0 = (module.particles0 + module.particle_offset).detach()
+        v = module.v0.detach() if v0 is None else v0
+        out = sim.rollout(x0, v, params, gravity=module.gravity.detach(), effect_params=module.effect_params.detach(),
+                          n_frames=max(frames))
+        return float(module.probe_losses(out.positions, stage, list(module.input.train_cameras), frames)["total"])
+
+
 def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFAULT_FRAMES,
                   refinements: int = DEFAULT_REFINEMENTS, starts: Optional[int] = None,
                   joint_yield: bool = False) -> dict:
@@ -153,10 +173,6 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     index = {n: mat.param_names.index(n) for n in names}
     start = {n: float(base_phys[index[n]]) for n in names}
     to_coord = {n: (lambda v, a=axes[n]: math.log10(v) if a[0] else v) for n in names}
-    sim = module.simulator
-    with torch.no_grad():
-        x0 = (module.particles0 + module.particle_offset).detach()
-        v0, gravity, effects = module.v0.detach(), module.gravity.detach(), module.effect_params.detach()
     cache: dict[tuple, float] = {}
     points: list[dict] = []
 
@@ -170,9 +186,7 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             params[index[n]] = phys[n]
         note = None
         try:
-            with sim.substep_plan_restored():
-                out = sim.rollout(x0, v0, params, gravity=gravity, effect_params=effects, n_frames=max(picked))
-            loss = module.probe_losses(out.positions, stage, cams, picked)["total"]
+            loss = candidate_loss(module, stage, params, picked)
             if not math.isfinite(loss):
                 note, loss = "non-finite loss", math.inf
         except (SimulationError, MaterialError) as err:  # CFL/NaN after the halvings, out of the domain
