@@ -217,6 +217,14 @@ def test_a_kept_stage_end_reloads_the_fit_as_it_stood_and_reruns_its_search(fitt
     assert again["start"] == pytest.approx(record["start"], rel=1e-6)
     assert again["best"] == pytest.approx(record["best"], rel=1e-6)
     assert again["best_loss"] == pytest.approx(record["best_loss"], rel=1e-5)
+    # one candidate scored alone gives the search's own number for it
+    from toolkit.physics.coarse_search import candidate_loss
+
+    stage = next(s for s in early.stages if "M" in s.groups)
+    params = early.material_params().detach().clone()
+    for j, name in enumerate(early.material.param_names):
+        params[j] = record["best"].get(name, float(params[j]))
+    assert candidate_loss(early, stage, params, record["frames"]) == pytest.approx(record["best_loss"], rel=1e-5)
     assert not torch.equal(early.particle_offset, last.particle_offset)  # the body moved on after the stage end
     with pytest.raises(FileNotFoundError, match="stage_07_end.ckpt does not exist"):
         load_fitted_module(fitted_run, checkpoint="stage_07_end.ckpt")
