@@ -147,7 +147,7 @@ def test_search_runs_once_at_the_first_material_iteration(tiny_input, tmp_path):
                              material_init="given")
     fit_physics(g, tmp_path / "b", checkpoint_every=0, accelerator="cpu", progress=False)
     assert g.material_search is None and not (tmp_path / "b" / "material_search.json").exists()
-    with pytest.raises(ValueError, match="material_init must be 'search' or 'given'"):
+    with pytest.raises(ValueError, match="material_init must be one of 'search', 'search_joint', 'given'"):
         InversePhysicsModule(tiny_input, material_init="grid")
 
 
@@ -179,3 +179,38 @@ def test_the_joint_yield_option_leaves_a_material_without_a_yield_surface_alone(
     m = _module(tiny_input, optimize_params=["E", "nu"])
     plain, joint = coarse_search(m, m.stages[0]), coarse_search(m, m.stages[0], joint_yield=True)
     assert joint["best"] == plain["best"] and [p["params"] for p in joint["points"]] == [p["params"] for p in plain["points"]]
+
+
+def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_parameter(tiny_input, tmp_path):
+    """``material_init="search_joint"`` on a plasticine fit: the search before the first M step scores
+    every point of E's grid x (tau_Y's grid plus its guess) at the fitted nu, records
+    ``joint_yield``, keeps its lowest point, and the fit starts there; ``"search"`` sweeps E at the guess of tau_Y only."""
+    from toolkit.physics.coarse_search import search_axis
+    from toolkit.physics.fit import fit_physics
+
+    def fit(init: str, folder):
+        m = InversePhysicsModule(tiny_input, material="plasticine", curriculum="XASM:1", sim=fit_sim(),
+                                 renderer="warp", optimize_params=["E", "yield_stress"], v0_init=list(V0),
+                                 material_init=init)
+        fit_physics(m, folder, checkpoint_every=0, accelerator="cpu", progress=False)
+        return m, json.loads((folder / "material_search.json").read_text())
+
+    m, rec = fit("search_joint", tmp_path / "joint")
+    mat = m.material
+    _, e_lo, e_hi, e_n = search_axis(mat.param("E"))
+    _, y_lo, y_hi, y_n = search_axis(mat.param("yield_stress"))
+    guess = math.log10(mat.param("yield_stress").default)
+    rows = np.unique(np.append(np.linspace(y_lo, y_hi, y_n), guess))
+    scored = {(round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
+              for p in rec["points"]}
+    grid = {(round(float(a), 4), round(float(b), 4)) for a in np.linspace(e_lo, e_hi, e_n) for b in rows}
+    assert rec["joint_yield"] is True and grid <= scored
+    assert rec["best_loss"] == min(p["loss"] for p in rec["points"] if p["loss"] is not None)
+    assert abs(math.log10(m.history[0]["param/E"] / rec["best"]["E"])) < 0.11  # the pick, then one Adam step
+    _, plain = fit("search", tmp_path / "plain")
+    first_sweep = {(a, b) for a, b in grid if b == round(guess, 4)}
+    assert plain["joint_yield"] is False and first_sweep <= {
+        (round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
+        for p in plain["points"]} and not grid <= {
+        (round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
+        for p in plain["points"]}

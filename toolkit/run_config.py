@@ -36,6 +36,10 @@ SECTIONS = ("run", "model", "trainer")
 RUN_MODEL_KEYS = ("material", "material_options", "initial_params", "optimize_params", "curriculum", "sim",
                   "lambda_geometry", "learning_rates", "renderer", "seed", "optimize_gravity")
 #: the other InversePhysicsModule arguments, carried in ``RunSettings.model_options``
+#: ``model_options.material_init``: where the material's gradient descent starts
+#: (:class:`toolkit.physics.module.InversePhysicsModule`).
+MATERIAL_INITS = ("search", "search_joint", "given")
+
 MODULE_OPTIONS = ("effects", "v0_init", "material_init", "lambda_image", "ssim_weight", "warmup_fraction",
                   "embedding_neighbours", "embedding", "gaussian_shape", "fit_ranges", "body_shift",
                   "uncertainty_options")
@@ -140,7 +144,7 @@ def check_model_options(options: Any) -> None:
 
     Valid keys are :data:`MODULE_OPTIONS`: ``effects`` ``{effect: {param: value}}`` (registered
     effects, values in each parameter's range), ``v0_init`` (3 numbers, m/s, canonical frame, or
-    ``"auto"``/``"zero"``), ``material_init`` (``"search"`` or ``"given"``),
+    ``"auto"``/``"zero"``), ``material_init`` (``"search"``, ``"search_joint"`` or ``"given"``),
     ``lambda_image`` (>= 0 or None: ``1 / cameras``), ``ssim_weight`` in [0, 1],
     ``warmup_fraction`` in [0, 1), ``embedding_neighbours`` (integer >= 1), ``embedding``
     (``"idw"`` or ``"affine"``, :mod:`toolkit.physics.embedding`), ``gaussian_shape`` (``"rigid"``
@@ -172,9 +176,10 @@ def check_model_options(options: Any) -> None:
                 check(options[key])
             except ValueError as err:
                 raise SettingsError(f"model_options.{key}", options[key], str(err)) from None
-    if options.get("material_init", "search") not in ("search", "given"):
+    if options.get("material_init", "search") not in MATERIAL_INITS:
         raise SettingsError("model_options.material_init", options["material_init"],
-                            "expected 'search' (coarse search before gradient descent) or 'given' (start at the guesses)")
+                            "expected 'search' (coarse search before gradient descent), 'search_joint' (the same with "
+                            "the first and the yield parameter on one grid) or 'given' (start at the guesses)")
     if options.get("lambda_image") is not None:
         _number("lambda_image", options["lambda_image"], 0.0, math.inf)
     if "ssim_weight" in options:

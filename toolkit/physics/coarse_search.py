@@ -156,7 +156,8 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             local minima (4-neighbour) and go on coordinate-wise as before.
 
     Returns:
-        a JSON-ready dict: ``parameters`` (names searched), ``frames``, ``cameras``, ``start`` and
+        a JSON-ready dict: ``parameters`` (names searched), ``frames``, ``cameras``, ``joint_yield``
+        (whether the first sweep was the product grid), ``start`` and
         ``best`` (physical values), ``start_loss``, ``best_loss``, ``points`` (every candidate:
         ``params``, ``loss``, ``path`` and ``note`` for a failed rollout), ``paths`` (the best of
         each start), ``rollouts`` and ``seconds``. The module is not changed.
@@ -256,6 +257,7 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         best_loss = best_path["loss"]
     return {
         "material": mat.name, "parameters": names, "frames": picked, "cameras": cams, "stage": stage.name,
+        "joint_yield": bool(names) and partner is not None,
         "start": start, "start_loss": _finite(start_loss), "best": best, "best_loss": _finite(best_loss),
         "paths": [{"path": p["path"], "loss": _finite(p["loss"]),
                    "params": {n: _physical(mat.param(n), p["coords"][n], axes[n][0]) for n in names}} for p in paths],

@@ -49,6 +49,7 @@ from toolkit.physics.prediction import PredictionMixin
 from toolkit.physics.starting_state import (StepStream, cosine_with_warmup, free_flight_curriculum, initial_v0,
                                              rigid_shift, surface_particles, velocity_start_curriculum, warn_if_zero_start_is_held)
 from toolkit.physics.time_scale import report_time_scale
+from toolkit.run_config import MATERIAL_INITS
 
 __all__ = ["InversePhysicsModule", "DEFAULT_LEARNING_RATES"]
 
@@ -91,8 +92,10 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
             coarse global search of the optimized material parameters
             (:mod:`toolkit.physics.coarse_search`) picks where gradient descent starts (the given or
             default guess is one candidate; the record is kept in ``material_search`` and written to
-            ``material_search.json`` in the trainer's folder); ``"given"``: start at
-            ``initial_params`` / the material's defaults.
+            ``material_search.json`` in the trainer's folder); ``"search_joint"``: the same search
+            with the first and the yield parameter swept on one grid
+            (``coarse_search(joint_yield=True)``; the same as ``"search"`` for a material without a
+            yield parameter); ``"given"``: start at ``initial_params`` / the material's defaults.
         optimize_gravity: put gravity in ``S`` too.
         lambda_image: weight of the image term per camera; default ``1 / |C|``.
         lambda_geometry: weight of the geometric term.
@@ -186,8 +189,8 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
         #: default keyword options of :meth:`uncertainty`
         self.uncertainty_options = check_uncertainty_options(uncertainty_options)
         self.effect_init = dict(effects or {})
-        if material_init not in ("search", "given"):
-            raise ValueError(f"material_init must be 'search' or 'given', got {material_init!r}")
+        if material_init not in MATERIAL_INITS:
+            raise ValueError(f"material_init must be one of {', '.join(map(repr, MATERIAL_INITS))}, got {material_init!r}")
         self.material_init = material_init
         #: the coarse search's record (``toolkit.physics.coarse_search``), None until it ran
         self.material_search: Optional[dict] = None
@@ -417,11 +420,11 @@ class InversePhysicsModule(FitObjectiveMixin, PredictionMixin, CheckpointStateMi
         stage = at.stage
         cams, frames = self._sample(stage, step)
         key = self.material.registry_name or None
-        if "M" in stage.groups and self.material_init == "search" and self.curriculum.group_progress("M", step, key) == 0:
+        if "M" in stage.groups and self.material_init != "given" and self.curriculum.group_progress("M", step, key) == 0:
             from toolkit.physics.coarse_search import search_and_apply
 
             folder = getattr(self._trainer, "default_root_dir", None) if self._trainer is not None else None
-            self.material_search = search_and_apply(self, stage, folder)
+            self.material_search = search_and_apply(self, stage, folder, joint_yield=self.material_init == "search_joint")
         opts = self.optimizers()
         for o in opts:
             o.zero_grad(set_to_none=True)
