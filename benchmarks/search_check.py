@@ -11,8 +11,11 @@ search, not the loss, put the fit's start in the wrong place.
 One JSON line per run::
 
     {"run", "pick": {name: value}, "pick_loss", "truth": {...}, "truth_loss", "truth_true_v0_loss",
-     "pick_true_v0_loss", "v0", "true_v0", "start_error": {name: decades or absolute}, "rollouts",
-     "seconds", "paths": [...]}
+     "pick_true_v0_loss", "window_frames", "pick_window_loss", "truth_window_loss", "v0", "true_v0",
+     "start_error": {name: decades or absolute}, "rollouts", "seconds", "paths": [...]}
+
+``*_loss`` are on the search's few frames, ``*_window_loss`` on every frame of the stage's window
+(where the joint search weighs its product grid's paths against the default's pick).
 
 ``truth_true_v0_loss`` and ``pick_true_v0_loss`` score the truth's material and the pick with the
 true initial velocity instead of the fitted one: where the truth wins only then, the initial
@@ -111,7 +114,7 @@ def main(argv=None) -> int:
     from toolkit.verbosity import configure_output
 
     configure_output(False)
-    from toolkit.physics.coarse_search import coarse_search
+    from toolkit.physics.coarse_search import coarse_search, score_frames
     from toolkit.pipeline import load_fitted_module
 
     for run in args.runs:
@@ -126,9 +129,14 @@ def main(argv=None) -> int:
         truth_loss = _score(module, stage, result["frames"], truth)
         true_v0_loss = _score(module, stage, result["frames"], truth, gt["v0"])
         pick_true_v0_loss = _score(module, stage, result["frames"], result["best"], gt["v0"])
+        window = stage.window(module.input.n_train)
+        whole = score_frames(window, window)
+        truth_window_loss = _score(module, stage, whole, truth)
+        pick_window_loss = _score(module, stage, whole, result["best"])
         print(json.dumps({
             "run": run, "checkpoint": picks[run], "joint_yield": args.joint_yield, "stage": stage.name, "pick": result["best"], "pick_loss": result["best_loss"], "truth": truth,
             "truth_loss": truth_loss, "truth_true_v0_loss": true_v0_loss, "pick_true_v0_loss": pick_true_v0_loss,
+            "window_frames": whole, "pick_window_loss": pick_window_loss, "truth_window_loss": truth_window_loss,
             "v0": module.v0.detach().tolist(), "true_v0": gt["v0"], "start": result["start"], "start_loss": result["start_loss"],
             "start_error": {n: round(_error(module, n, v, truth[n]), 3) for n, v in result["best"].items() if n in truth},
             "paths": result["paths"], "rollouts": result["rollouts"], "seconds": round(result["seconds"], 2),

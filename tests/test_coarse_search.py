@@ -184,7 +184,8 @@ def test_the_joint_yield_option_leaves_a_material_without_a_yield_surface_alone(
 def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_parameter(tiny_input, tmp_path):
     """``material_init="search_joint"`` on a plasticine fit: the search before the first M step scores
     every point of E's grid x (tau_Y's grid plus its guess) at the fitted nu, records
-    ``joint_yield``, keeps its lowest point, and the fit starts there; ``"search"`` sweeps E at the guess of tau_Y only."""
+    ``joint_yield``, picks the default's point or a grid path's end that beat it on the window, and
+    the fit starts there; ``"search"`` sweeps E at the guess of tau_Y only."""
     from toolkit.physics.coarse_search import search_axis
     from toolkit.physics.fit import fit_physics
 
@@ -205,7 +206,12 @@ def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_paramet
               for p in rec["points"]}
     grid = {(round(float(a), 4), round(float(b), 4)) for a in np.linspace(e_lo, e_hi, e_n) for b in rows}
     assert rec["joint_yield"] is True and grid <= scored
-    assert rec["best_loss"] == min(p["loss"] for p in rec["points"] if p["loss"] is not None)
+    ends = [p["params"] for p in rec["paths"]] + [rec["start"]]
+    assert any(all(math.isclose(rec["best"][k], e[k], rel_tol=1e-6) for k in e) for e in ends)
+    default_pick = min([rec["start_loss"]] + [p["loss"] for p in rec["paths"] if p["origin"] == "line"])
+    grid_window = [p["window_loss"] for p in rec["paths"] if p["origin"] == "grid"]
+    if rec["best_loss"] != pytest.approx(default_pick, rel=1e-9):  # a grid path won: by more than 1 % on the window
+        assert grid_window and rec["best_window_loss"] == min(grid_window)
     assert abs(math.log10(m.history[0]["param/E"] / rec["best"]["E"])) < 0.11  # the pick, then one Adam step
     _, plain = fit("search", tmp_path / "plain")
     first_sweep = {(a, b) for a, b in grid if b == round(guess, 4)}
@@ -214,3 +220,52 @@ def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_paramet
         for p in plain["points"]} and not grid <= {
         (round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
         for p in plain["points"]}
+
+
+@pytest.mark.parametrize("raise_ac, pick", [(1.0, (5.5, 3.0)), (0.00995, (5.5, 3.0)), (0.0, (3.5, 1.5))])
+def test_the_pick_is_scored_on_the_whole_window_and_joint_keeps_the_defaults_path(tiny_input, monkeypatch, raise_ac, pick):
+    """An analytic loss of (log10 E, log10 tau_Y) with three basins: on the search's frames a soft,
+    early-yielding one A (0 at (3.5, 1.5)) and a stiff one C (0.005 at (6.5, 4.5)) are the product
+    grid's two best minima, and B (0.01 at (5.5, 3.0)) is the minimum of the default's line at
+    tau_Y's guess; on every frame of the window A and C cost ``raise_ac`` more. ``joint_yield``
+    follows a path from all three (B's marked as the default's) and weighs the grid's against B on
+    the window: B when A costs 1 more there (on the search's frames alone A won), B when A is lower
+    by less than MIN_GAIN (0.00995 against 0.01), A when A is lower by more. The record keeps the
+    pick's search-frame loss; B, A and C are scored once each on the window. Without
+    ``joint_yield`` the search picks B on its own frames and scores nothing on the window."""
+    import toolkit.physics.coarse_search as cs
+
+    m = _module(tiny_input, material="plasticine", optimize_params=["E", "yield_stress"])
+    stage = m.stages[0]
+    window = stage.window(m.input.n_train)
+    picked, whole = score_frames(window, 2), score_frames(window, window)  # the tiny clip's window: 5 frames
+    assert whole != picked and len(whole) == window - 1
+    names = list(m.material.param_names)
+    window_calls = []
+
+    def loss(module, stage_, params, frames, v0=None):
+        e, y = math.log10(float(params[names.index("E")])), math.log10(float(params[names.index("yield_stress")]))
+        extra = raise_ac if frames == whole else 0.0
+        if frames == whole:
+            window_calls.append((round(e, 3), round(y, 3)))
+        else:
+            assert frames == picked
+        return min(0.5 * ((e - 3.5) ** 2 + (y - 1.5) ** 2) + extra, 0.01 + (e - 5.5) ** 2 + (y - 3.0) ** 2,
+                   0.005 + (e - 6.5) ** 2 + (y - 4.5) ** 2 + extra)
+
+    monkeypatch.setattr(cs, "candidate_loss", loss)
+    rec = coarse_search(m, stage, frames=2, joint_yield=True)
+    ends = {(round(math.log10(p["params"]["E"]), 3), round(math.log10(p["params"]["yield_stress"]), 3)): p["origin"]
+            for p in rec["paths"]}
+    assert ends == {(3.5, 1.5): "grid", (5.5, 3.0): "line", (6.5, 4.5): "grid"}
+    assert math.log10(rec["best"]["E"]) == pytest.approx(pick[0], abs=1e-4)
+    assert math.log10(rec["best"]["yield_stress"]) == pytest.approx(pick[1], abs=1e-4)
+    search_loss = 0.01 if pick == (5.5, 3.0) else 0.0
+    assert rec["best_loss"] == pytest.approx(search_loss, abs=1e-6)
+    assert rec["best_window_loss"] == pytest.approx(search_loss + (raise_ac if pick == (3.5, 1.5) else 0.0), abs=1e-6)
+    assert rec["window_frames"] == whole and len(window_calls) == 3  # the default's pick (B), A and C
+    assert rec["rollouts"] == len(rec["points"]) + len(window_calls)
+    window_calls.clear()
+    plain = coarse_search(m, stage, frames=2)  # the default's paths never reach A's grid point: B, on its frames
+    assert math.log10(plain["best"]["E"]) == pytest.approx(5.5, abs=1e-4) and plain["best_loss"] == pytest.approx(0.01)
+    assert not window_calls and plain["window_frames"] == picked and plain["rollouts"] == len(plain["points"])

@@ -7,7 +7,7 @@ search range (:attr:`materials.base.MaterialParam.search`) in the parameter's ow
 (log10 for ``log10`` parameters, the physical value for bounded ones), scoring every candidate by
 **the fit's own loss** (:meth:`toolkit.physics.module.InversePhysicsModule.losses`: image + geometric terms of that
 stage) on a few training frames of the stage's window, with the current positions, appearance
-and v0, forward-only (no gradients). The module then starts from the lowest-loss candidate.
+and v0, forward-only (no gradients). The module then starts from the best candidate.
 
 Method (coordinate-wise, coarse to fine):
 
@@ -23,10 +23,16 @@ Method (coordinate-wise, coarse to fine):
 3. materials with a yield surface (a ``yield_stress`` or ``friction_angle`` parameter) have
    branches (a body that yields or not) that a single coordinate path can miss: the
    :data:`YIELD_STARTS` best local minima of the first parameter's grid each start a path
-   (multi-start) and the lowest final loss wins. With ``joint_yield`` the first parameter is swept
-   together with the yield parameter on their product grid, and the paths start from that grid's
-   best local minima (the first parameter's line at the yield parameter's guess can fall all the
-   way to a stiff edge when the guess is off: ``docs/results/paper_size.md``, round 36).
+   (multi-start). With ``joint_yield`` the first parameter is also swept together with the yield
+   parameter on their product grid, and paths start from that grid's best local minima as well
+   (the first parameter's line at the yield parameter's guess can fall all the way to a stiff
+   edge when the guess is off: ``docs/results/paper_size.md``, round 36);
+4. the pick: the lower of the start and the default's best path end on the search's frames (a
+   tie keeps the start). With ``joint_yield`` that pick and each product-grid path's end are
+   scored again on **every frame of the window**, and a grid path's end replaces the pick only if
+   it is lower there by more than :data:`MIN_GAIN`: the few search frames can rank a branch lower
+   that the window as a whole ranks higher (at 64 px the product grid's soft, early-yielding
+   branch won on 4 frames and its fits predicted 8x worse: ``docs/results/search_check_small/``).
 
 A rollout that fails (CFL or NaN after the allowed dt halvings, out of the domain) scores
 ``inf``; the simulator's kept dt-halving floor is restored afterwards, so the search leaves the
@@ -151,16 +157,23 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             yield surface (:data:`YIELD_PARAMS`), else 1.
         joint_yield: for a material whose yield parameter is not its first, sweep the first
             parameter and the yield parameter together on their product grid (the yield
-            parameter's grid plus its guess: 4 x 5 points for plasticine's E and tau_Y) instead of
-            the first alone at the yield parameter's guess; the paths start from the grid's best
-            local minima (4-neighbour) and go on coordinate-wise as before.
+            parameter's grid plus its guess: 4 x 5 points for plasticine's E and tau_Y); paths
+            start from the grid's best local minima (4-neighbour) as well as from the default's
+            (the first parameter's line at the guess, a row of that grid) and go on
+            coordinate-wise as before.
 
     Returns:
-        a JSON-ready dict: ``parameters`` (names searched), ``frames``, ``cameras``, ``joint_yield``
-        (whether the first sweep was the product grid), ``start`` and
+        a JSON-ready dict: ``parameters`` (names searched), ``frames`` (the search's frames),
+        ``cameras``, ``joint_yield`` (whether the first sweep was the product grid),
+        ``window_frames`` (where the product grid's paths were weighed against the default's pick;
+        ``frames`` without them or when the window has no other frames), ``best_window_loss``,
+        ``start`` and
         ``best`` (physical values), ``start_loss``, ``best_loss``, ``points`` (every candidate:
-        ``params``, ``loss``, ``path`` and ``note`` for a failed rollout), ``paths`` (the best of
-        each start), ``rollouts`` and ``seconds``. The module is not changed.
+        ``params``, ``loss``, ``path`` and ``note`` for a failed rollout), ``paths`` (the end of
+        each path with its ``origin``, ``"line"`` for the default's or ``"grid"`` for the product
+        grid's, its ``loss`` and, where it was scored on the window, ``window_loss``),
+        ``rollouts`` (the window's included) and
+        ``seconds``. The module is not changed.
     """
     t0 = time.perf_counter()
     mat = module.material
@@ -177,21 +190,22 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     cache: dict[tuple, float] = {}
     points: list[dict] = []
 
+    def rollout_loss(phys: dict[str, float], frames: list[int]) -> tuple[float, Optional[str]]:
+        params = base_phys.clone()
+        for n in names:
+            params[index[n]] = phys[n]
+        try:
+            loss = candidate_loss(module, stage, params, frames)
+        except (SimulationError, MaterialError) as err:  # CFL/NaN after the halvings, out of the domain
+            return math.inf, f"{type(err).__name__}: {str(err)[:160]}"
+        return (loss, None) if math.isfinite(loss) else (math.inf, "non-finite loss")
+
     def evaluate(coords: dict[str, float], path: int) -> float:
         phys = {n: _physical(mat.param(n), coords[n], axes[n][0]) for n in names}
         key = tuple(round(to_coord[n](phys[n]), 5) for n in names)  # float32 starts meet grid points
         if key in cache:
             return cache[key]
-        params = base_phys.clone()
-        for n in names:
-            params[index[n]] = phys[n]
-        note = None
-        try:
-            loss = candidate_loss(module, stage, params, picked)
-            if not math.isfinite(loss):
-                note, loss = "non-finite loss", math.inf
-        except (SimulationError, MaterialError) as err:  # CFL/NaN after the halvings, out of the domain
-            note, loss = f"{type(err).__name__}: {str(err)[:160]}", math.inf
+        loss, note = rollout_loss(phys, picked)
         cache[key] = loss
         rec = {"params": phys, "loss": _finite(loss), "path": path}
         if note:
@@ -224,44 +238,62 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
         grid = np.linspace(lo, hi, n_pts)
         n_starts = starts if starts is not None else (YIELD_STARTS if set(names) & YIELD_PARAMS else 1)
         partner = next((n for n in names[1:] if n in YIELD_PARAMS), None) if joint_yield else None
-        if partner is None:
-            scored = line(current, first, grid, 0)
-            minima = [i for i in range(len(scored)) if (i == 0 or scored[i][1] <= scored[i - 1][1])
-                      and (i == len(scored) - 1 or scored[i][1] <= scored[i + 1][1])]
-            origins = [{**current, first: float(scored[i][0])}
-                       for i in sorted(minima, key=lambda i: scored[i][1])[: max(1, n_starts)] or [0]]
-        else:
+        # the default's paths start at the best local minima of the first parameter's line at the
+        # others' guesses; with joint_yield the product grid's minima start further paths
+        origins = [(o, "line") for o in _line_minima(line(current, first, grid, 0), current, first, max(1, n_starts))]
+        if partner is not None:
             # the yield parameter's guess is a row of the grid too: the default's line is part of it
             rows = np.unique(np.append(np.linspace(axes[partner][1], axes[partner][2], axes[partner][3]),
                                        current[partner]))
-            origins = _grid_minima(evaluate, current, first, grid, partner, rows, max(1, n_starts))
+            for o in _grid_minima(evaluate, current, first, grid, partner, rows, max(1, n_starts)):
+                if all(o != seen for seen, _ in origins):
+                    origins.append((o, "grid"))
         step0 = float(grid[1] - grid[0]) if len(grid) > 1 else 1.0
         def settle(before: dict, after: dict, path: int) -> dict:
             """Keep a coordinate's move only if it lowers the loss by more than MIN_GAIN (a flat,
             undetermined direction leaves the parameter where it was)."""
             return after if evaluate(after, path) < (1 - MIN_GAIN) * evaluate(before, path) else before
 
-        for k, origin in enumerate(origins):
+        for k, (origin, kind) in enumerate(origins):
             coords = settle(current, refine(origin, first, step0, k), k)
             for name in names[1:]:
                 _, lo_n, hi_n, n_n = axes[name]
                 g = np.linspace(lo_n, hi_n, n_n)
                 best = min(line(coords, name, g, k), key=lambda cl: cl[1])
                 coords = settle(coords, refine({**coords, name: float(best[0])}, name, float(g[1] - g[0]), k), k)
-            paths.append({"path": k, "coords": coords, "loss": evaluate(coords, k)})
-    best_path = min(paths, key=lambda p: p["loss"]) if paths else None
-    if best_path is None or not best_path["loss"] < start_loss:
-        best, best_loss = start, start_loss
+            paths.append({"path": k, "origin": kind, "coords": coords, "loss": evaluate(coords, k)})
+    # the default's pick: the start or its best path end, by the search's frames (a tie keeps the
+    # start); a product-grid path's end replaces it only if it is lower by more than MIN_GAIN on
+    # every frame of the window (the few search frames can rank a branch lower that the window as a
+    # whole ranks higher)
+    whole = score_frames(window, window)
+    final = [{"path": None, "origin": "start", "coords": current, "loss": start_loss}] + paths
+    chosen = min((c for c in final if c["origin"] != "grid"), key=lambda c: c["loss"])
+    extra = [c for c in final if c["origin"] == "grid"]
+    if extra:
+        frames_for_pick = whole if whole != picked else picked
+        for cand in [chosen] + extra:
+            cand["window_loss"] = (rollout_loss({n: _physical(mat.param(n), cand["coords"][n], axes[n][0]) for n in names},
+                                                whole)[0] if whole != picked else cand["loss"])
+        best_extra = min(extra, key=lambda c: c["window_loss"])
+        if best_extra["window_loss"] < (1 - MIN_GAIN) * chosen["window_loss"]:
+            chosen = best_extra
     else:
-        best = {n: _physical(mat.param(n), best_path["coords"][n], axes[n][0]) for n in names}
-        best_loss = best_path["loss"]
+        frames_for_pick = picked
+    window_rollouts = (1 + len(extra)) if extra and whole != picked else 0
+    best = {n: _physical(mat.param(n), chosen["coords"][n], axes[n][0]) for n in names}
+    best_loss = chosen["loss"]
     return {
         "material": mat.name, "parameters": names, "frames": picked, "cameras": cams, "stage": stage.name,
         "joint_yield": bool(names) and partner is not None,
         "start": start, "start_loss": _finite(start_loss), "best": best, "best_loss": _finite(best_loss),
-        "paths": [{"path": p["path"], "loss": _finite(p["loss"]),
+        "window_frames": frames_for_pick,
+        "best_window_loss": _finite(chosen.get("window_loss", best_loss)),
+        "paths": [{"path": p["path"], "origin": p["origin"], "loss": _finite(p["loss"]),
+                   **({"window_loss": _finite(p["window_loss"])} if "window_loss" in p else {}),
                    "params": {n: _physical(mat.param(n), p["coords"][n], axes[n][0]) for n in names}} for p in paths],
-        "points": points, "rollouts": len(points), "seconds": time.perf_counter() - t0,
+        "points": points, "rollouts": len(points) + window_rollouts,
+        "seconds": time.perf_counter() - t0,
         "iteration": int(module.curriculum_step),
     }
 
@@ -279,6 +311,15 @@ def _grid_minima(evaluate, current: dict, first: str, grid_a, second: str, grid_
                 minima.append((table[i, j], i, j))
     minima.sort()
     return [{**current, first: float(grid_a[i]), second: float(grid_b[j])} for _, i, j in minima[:count]] or [current]
+
+
+def _line_minima(scored: list[tuple[float, float]], current: dict, first: str, count: int) -> list[dict]:
+    """The ``count`` lowest local minima of a line sweep ``[(coordinate, loss)]`` of ``first`` (an
+    end counts when it is lower than its one neighbour), as starts ``{**current, first: coordinate}``;
+    the line's first point when none is finite."""
+    minima = [i for i in range(len(scored)) if (i == 0 or scored[i][1] <= scored[i - 1][1])
+              and (i == len(scored) - 1 or scored[i][1] <= scored[i + 1][1])]
+    return [{**current, first: float(scored[i][0])} for i in sorted(minima, key=lambda i: scored[i][1])[:count] or [0]]
 
 
 def _loss_text(x: Optional[float]) -> str:
