@@ -196,14 +196,17 @@ def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_paramet
         fit_physics(m, folder, checkpoint_every=0, accelerator="cpu", progress=False)
         return m, json.loads((folder / "material_search.json").read_text())
 
+    def scored_pairs(record) -> set:
+        return {(round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
+                for p in record["points"]}
+
     m, rec = fit("search_joint", tmp_path / "joint")
     mat = m.material
     _, e_lo, e_hi, e_n = search_axis(mat.param("E"))
     _, y_lo, y_hi, y_n = search_axis(mat.param("yield_stress"))
     guess = math.log10(mat.param("yield_stress").default)
     rows = np.unique(np.append(np.linspace(y_lo, y_hi, y_n), guess))
-    scored = {(round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
-              for p in rec["points"]}
+    scored = scored_pairs(rec)
     grid = {(round(float(a), 4), round(float(b), 4)) for a in np.linspace(e_lo, e_hi, e_n) for b in rows}
     assert rec["joint_yield"] is True and grid <= scored
     ends = [p["params"] for p in rec["paths"]] + [rec["start"]]
@@ -215,11 +218,7 @@ def test_search_joint_sweeps_the_product_grid_of_the_first_and_the_yield_paramet
     assert abs(math.log10(m.history[0]["param/E"] / rec["best"]["E"])) < 0.11  # the pick, then one Adam step
     _, plain = fit("search", tmp_path / "plain")
     first_sweep = {(a, b) for a, b in grid if b == round(guess, 4)}
-    assert plain["joint_yield"] is False and first_sweep <= {
-        (round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
-        for p in plain["points"]} and not grid <= {
-        (round(math.log10(p["params"]["E"]), 4), round(math.log10(p["params"]["yield_stress"]), 4))
-        for p in plain["points"]}
+    assert plain["joint_yield"] is False and first_sweep <= scored_pairs(plain) and not grid <= scored_pairs(plain)
 
 
 @pytest.mark.parametrize("raise_ac, pick", [(1.0, (5.5, 3.0)), (0.00995, (5.5, 3.0)), (0.0, (3.5, 1.5))])

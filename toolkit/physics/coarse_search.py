@@ -200,8 +200,11 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
             return math.inf, f"{type(err).__name__}: {str(err)[:160]}"
         return (loss, None) if math.isfinite(loss) else (math.inf, "non-finite loss")
 
+    def physical(coords: dict[str, float]) -> dict[str, float]:
+        return {n: _physical(mat.param(n), coords[n], axes[n][0]) for n in names}
+
     def evaluate(coords: dict[str, float], path: int) -> float:
-        phys = {n: _physical(mat.param(n), coords[n], axes[n][0]) for n in names}
+        phys = physical(coords)
         key = tuple(round(to_coord[n](phys[n]), 5) for n in names)  # float32 starts meet grid points
         if key in cache:
             return cache[key]
@@ -270,29 +273,25 @@ def coarse_search(module: "InversePhysicsModule", stage: Any, frames: int = DEFA
     final = [{"path": None, "origin": "start", "coords": current, "loss": start_loss}] + paths
     chosen = min((c for c in final if c["origin"] != "grid"), key=lambda c: c["loss"])
     extra = [c for c in final if c["origin"] == "grid"]
+    on_window = bool(extra) and whole != picked
+    for cand in ([chosen] + extra) if extra else []:
+        cand["window_loss"] = rollout_loss(physical(cand["coords"]), whole)[0] if on_window else cand["loss"]
     if extra:
-        frames_for_pick = whole if whole != picked else picked
-        for cand in [chosen] + extra:
-            cand["window_loss"] = (rollout_loss({n: _physical(mat.param(n), cand["coords"][n], axes[n][0]) for n in names},
-                                                whole)[0] if whole != picked else cand["loss"])
         best_extra = min(extra, key=lambda c: c["window_loss"])
         if best_extra["window_loss"] < (1 - MIN_GAIN) * chosen["window_loss"]:
             chosen = best_extra
-    else:
-        frames_for_pick = picked
-    window_rollouts = (1 + len(extra)) if extra and whole != picked else 0
-    best = {n: _physical(mat.param(n), chosen["coords"][n], axes[n][0]) for n in names}
+    best = physical(chosen["coords"])
     best_loss = chosen["loss"]
     return {
         "material": mat.name, "parameters": names, "frames": picked, "cameras": cams, "stage": stage.name,
         "joint_yield": bool(names) and partner is not None,
         "start": start, "start_loss": _finite(start_loss), "best": best, "best_loss": _finite(best_loss),
-        "window_frames": frames_for_pick,
+        "window_frames": whole if extra else picked,
         "best_window_loss": _finite(chosen.get("window_loss", best_loss)),
         "paths": [{"path": p["path"], "origin": p["origin"], "loss": _finite(p["loss"]),
                    **({"window_loss": _finite(p["window_loss"])} if "window_loss" in p else {}),
-                   "params": {n: _physical(mat.param(n), p["coords"][n], axes[n][0]) for n in names}} for p in paths],
-        "points": points, "rollouts": len(points) + window_rollouts,
+                   "params": physical(p["coords"])} for p in paths],
+        "points": points, "rollouts": len(points) + (1 + len(extra) if on_window else 0),
         "seconds": time.perf_counter() - t0,
         "iteration": int(module.curriculum_step),
     }
